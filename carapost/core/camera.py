@@ -247,7 +247,7 @@ def undistort(xy: np.ndarray, intr: Intrinsics) -> np.ndarray:
 def _radius_scale_inverse(rho: np.ndarray, radial: tuple[float, float, float]) -> np.ndarray:
     """Solve ``r s(r) = rho`` for ``r`` (Newton), returning ``r / rho`` (1 where rho = 0)."""
     k1, k2, k3 = radial
-    r = rho.copy()
+    r = rho / (1.0 + k1 * rho * rho)  # first-order inverse: Newton then needs 2-3 steps
     for _ in range(30):
         r2 = r * r
         g = r * (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) - rho
@@ -303,12 +303,16 @@ def project_corrected(X: np.ndarray, intr: Intrinsics, R: np.ndarray, t: np.ndar
     axes. Points behind the camera come out as NaN.
     """
     X = np.asarray(X, dtype=float)
-    Xc = np.einsum("...ij,...j->...i", R, X) + t
-    z = Xc[..., 2]
+    R = np.asarray(R, dtype=float)
+    t = np.asarray(t, dtype=float)
+    x, y, zw = X[..., 0], X[..., 1], X[..., 2]
+    xc = R[..., 0, 0] * x + R[..., 0, 1] * y + R[..., 0, 2] * zw + t[..., 0]
+    yc = R[..., 1, 0] * x + R[..., 1, 1] * y + R[..., 1, 2] * zw + t[..., 1]
+    z = R[..., 2, 0] * x + R[..., 2, 1] * y + R[..., 2, 2] * zw + t[..., 2]
     with np.errstate(invalid="ignore", divide="ignore"):
         inv = np.where(z > 0, 1.0 / np.where(z > 0, z, 1.0), np.nan)
-    xn = Xc[..., 0] * inv
-    yn = Xc[..., 1] * inv
+    xn = xc * inv
+    yn = yc * inv
     x0, y0 = intr.principal_point
     f = intr.focal_length
     out = np.empty(xn.shape + (2,))
