@@ -196,5 +196,5 @@ def test_triangulate_blocks_match_unblocked(monkeypatch):
     np.testing.assert_array_equal(np.isnan(whole.xyz), np.isnan(blocks.xyz))
     np.testing.assert_allclose(blocks.xyz, whole.xyz, atol=1e-9)
     np.testing.assert_allclose(blocks.residuals, whole.residuals, atol=1e-9)
-    static = triangulate(xy, intr, R, t[None, None] + 0 * tf[:, None])  # static R, per-frame t
+    static = triangulate(xy, intr, R, tf[:, None])  # static R, per-frame t
     np.testing.assert_allclose(static.xyz, whole.xyz, atol=1e-9)
