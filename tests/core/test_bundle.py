@@ -1,7 +1,8 @@
 import numpy as np
 import pytest
 
-from carapost.core.bundle import bundle_adjust, _Problem
+from carapost.core.bundle import bundle_adjust
+from carapost.core.bundle_scipy import BundleProblem as _Problem
 from carapost.core.camera import Intrinsics, camera_centre, project, rodrigues
 
 
@@ -115,3 +116,14 @@ def test_missing_pose_is_an_error():
     R[0, 2] = np.nan
     with pytest.raises(ValueError, match="camera 2 has observations in frame 0 but no initial pose"):
         bundle_adjust(obs, intr, R, t, X, fixed_points=fixed)
+
+
+@pytest.mark.parametrize("solver,jac", [("scipy", "analytic"), ("scipy", "2-point")])
+def test_scipy_paths_reach_the_same_minimum(solver, jac):
+    intr, R, t, X, obs, fixed, rng = scene(F=2, P=20, flex=0.3)
+    obs = obs + rng.normal(scale=0.2, size=obs.shape)
+    R0, t0 = perturb(R, t, rng, rot=0.004, trans=1.0)
+    lm = bundle_adjust(obs, intr, R0, t0, X, fixed_points=fixed)
+    other = bundle_adjust(obs, intr, R0, t0, X, fixed_points=fixed, solver=solver, jac=jac)
+    assert lm.final_cost <= other.final_cost * (1 + 1e-6)
+    np.testing.assert_allclose(lm.xyz, other.xyz, atol=1e-4)
