@@ -200,7 +200,7 @@ def build_take(doc: CaraDoc) -> Take:
     if F < 1:
         raise doc.error(f"the take has {F} frames")
     C = doc.int_attr("cameras", "count")
-    if C < 1:
+    if C < 0:
         raise doc.error(f"the take has {C} cameras")
     cameras = [_camera(doc, c) for c in range(C)]
     points = _points(doc)

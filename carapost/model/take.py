@@ -293,13 +293,13 @@ class Take:
             caddies: list[tuple[int, int]] | None = None) -> "Take":
         """An empty take (no points, no detections) with the given cameras.
 
+        A take without cameras holds marker data only (e.g. opened from a C3D file).
+
         ``R (C, 3, 3)``/``t (C, 3)`` static poses or ``(F, C, ...)`` per-frame poses; NaN
         (unsolved) if omitted.
         """
         if n_frames < 1:
             raise ValueError(f"a take needs at least one frame, got {n_frames}")
-        if not cameras:
-            raise ValueError("a take needs at least one camera")
         if frame_rate <= 0:
             raise ValueError(f"frame rate must be positive, got {frame_rate}")
         C = len(cameras)

@@ -511,3 +511,19 @@ def test_blosc_file_without_hdf5plugin_names_the_package(saved):
     out = subprocess.run([sys.executable, "-c", code, str(saved)], capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert str(saved) in out.stdout and "needs the 'hdf5plugin' package" in out.stdout
+
+
+def test_take_without_cameras_roundtrips(tmp_path):
+    """Marker data opened from a C3D file has no cameras; it still saves and loads."""
+    import numpy as np
+
+    from carapost.io.cara import load_take, save_take
+    from carapost.model.take import Take
+
+    take = Take.new([], 5, 100.0, name="markers")
+    take.add_points(3, labels=["a", "b", ""])
+    take.xyz[:] = np.arange(45, dtype=float).reshape(5, 3, 3)
+    save_take(take, tmp_path / "m.cara")
+    back = load_take(tmp_path / "m.cara").take
+    assert back.n_cameras == 0 and back.points.labels == ["a", "b", ""]
+    np.testing.assert_array_equal(back.xyz, take.xyz)

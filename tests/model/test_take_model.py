@@ -20,7 +20,8 @@ def test_new_take_shapes():
     assert take.active_range == (0, 4)
 
 
-def test_one_camera_take_has_no_caddies():
+def test_zero_and_one_camera_takes_have_no_caddies():
+    assert Take.new([], 3, 30.0).caddies == []
     take = make_take(C=1)
     assert take.caddies == []
 
