@@ -9,11 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
-
-import numpy as np
 
 __all__ = ["main", "CliError"]
 
@@ -22,46 +18,13 @@ class CliError(Exception):
     """A failure to report to the user as one line (no traceback)."""
 
 
-def _cmd_demo(args: argparse.Namespace) -> dict:
-    from carapost.core.camera import Intrinsics, project
-    from carapost.core.triangulate import triangulate
+def _cmd_info(args: argparse.Namespace) -> dict:
+    from carapost.commands.info import file_info, format_info
 
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng(args.seed)
-    t0 = time.perf_counter()
-    # Four cameras on two caddies about 200 mm in front of a face-sized point cloud.
-    intr, Rs, ts = [], [], []
-    for ang in (-0.55, -0.25, 0.25, 0.55):
-        C = np.array([200 * np.sin(ang), -30.0, 200 * np.cos(ang)])
-        z = -C / np.linalg.norm(C)
-        x = np.cross([0, 1, 0], z)
-        x /= np.linalg.norm(x)
-        R = np.stack([x, np.cross(z, x), z])
-        intr.append(Intrinsics(1100.0, (640.0, 360.0), (1280, 720), radial=(2e-8, 0.0, 0.0)))
-        Rs.append(R)
-        ts.append(-R @ C)
-    R, t = np.array(Rs), np.array(ts)
-    n = 80
-    X = np.c_[rng.uniform(-60, 60, n), rng.uniform(-80, 80, n), rng.uniform(-10, 30, n)]
-    xy = np.stack([project(X, intr[v], R[v], t[v]) for v in range(4)], axis=1)
-    xy += rng.normal(scale=0.1, size=xy.shape)
-    res = triangulate(xy, intr, R, t)
-    err = np.linalg.norm(res.xyz - X, axis=1)
-    elapsed = time.perf_counter() - t0
-    report = {
-        "stages": ["project", "triangulate"],
-        "points": n,
-        "median_3d_error_mm": float(np.median(err)),
-        "p95_3d_error_mm": float(np.percentile(err, 95)),
-        "median_reprojection_px": float(np.nanmedian(res.residuals)),
-        "seconds": elapsed,
-        "files": [],
-    }
-    print(f"carapost demo: triangulated {n} markers seen by 4 cameras (0.1 px noise) in {elapsed:.3f} s")
-    print(f"  3D error against ground truth: median {report['median_3d_error_mm']:.3f} mm, "
-          f"95th percentile {report['p95_3d_error_mm']:.3f} mm")
-    return report
+    infos = [file_info(p) for p in args.files]
+    if not args.json:
+        print("\n".join(format_info(i) for i in infos))
+    return {"files": infos}
 
 
 Command = Callable[[argparse.Namespace], dict]
@@ -69,16 +32,51 @@ Command = Callable[[argparse.Namespace], dict]
 
 def _parser() -> tuple[argparse.ArgumentParser, dict[str, Command]]:
     parser = argparse.ArgumentParser(prog="carapost", description="CaraPost for Python: facial motion capture.")
-    parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
-    parser.add_argument("--json", action="store_true", help="print a machine-readable JSON summary last")
-    sub = parser.add_subparsers(dest="command")
+    common = argparse.ArgumentParser(add_help=False)
+    g = common.add_argument_group("common options")
+    g.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    g.add_argument("--json", action="store_true", help="print a machine-readable JSON summary last")
+    g.add_argument("--no-progress", action="store_true", help="no progress bars (farm logs)")
+    g.add_argument("--log", metavar="FILE", help="also write the log to FILE")
+    sub = _Sub(parser.add_subparsers(dest="command"), common)
     commands: dict[str, Command] = {}
 
-    p = sub.add_parser("demo", help="generate a demo take and run every stage on it")
-    p.add_argument("--out", default="demo_out", help="output folder (default: ./demo_out)")
-    p.add_argument("--seed", type=int, default=0)
-    commands["demo"] = _cmd_demo
+    from carapost.commands import calibrate, convert_detect, demo, export
+
+    p = sub.add_parser("info", help="summarise .pico, .xcp/.qca/.toml, .cara, .c3d, video or image-folder files")
+    p.add_argument("files", nargs="+")
+    commands["info"] = _cmd_info
+    commands.update(demo.add_parsers(sub))
+    commands.update(convert_detect.add_parsers(sub))
+    commands.update(export.add_parsers(sub))
+    commands.update(calibrate.add_parsers(sub))
     return parser, commands
+
+
+class _Sub:
+    """Sub-parser factory adding the common options to every command."""
+
+    def __init__(self, sub: argparse._SubParsersAction, common: argparse.ArgumentParser) -> None:
+        self._sub, self._common = sub, common
+
+    def add_parser(self, name: str, **kw: object) -> argparse.ArgumentParser:
+        return self._sub.add_parser(name, parents=[self._common], **kw)  # type: ignore[arg-type]
+
+
+def _setup_logging(log_file: str | None) -> None:
+    import logging
+
+    logger = logging.getLogger("carapost")
+    logger.setLevel(logging.INFO)
+    if not any(isinstance(h, logging.StreamHandler) for h in logger.handlers):
+        h = logging.StreamHandler(sys.stderr)
+        h.setFormatter(logging.Formatter("carapost: %(levelname)s: %(message)s"))
+        h.setLevel(logging.WARNING)
+        logger.addHandler(h)
+    if log_file:
+        fh = logging.FileHandler(log_file, encoding="utf-8")
+        fh.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+        logger.addHandler(fh)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -87,6 +85,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command is None:
         parser.print_help()
         return 0
+    if args.no_progress:
+        from carapost.commands import progress
+
+        progress.ENABLED = False
+    try:
+        _setup_logging(args.log)
+    except OSError as exc:
+        print(f"carapost {args.command}: error: cannot open the log file: {exc}", file=sys.stderr)
+        return 1
     try:
         summary = commands[args.command](args)
     except (CliError, ValueError, OSError, KeyError) as exc:

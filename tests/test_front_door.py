@@ -26,7 +26,8 @@ def test_quick_start_has_two_commands_and_ci_runs_the_second():
 def test_demo_runs(tmp_path):
     from carapost.cli import main
 
-    assert main(["demo", "--out", str(tmp_path)]) == 0
+    assert main(["demo", "--out", str(tmp_path), "--frames", "3", "--markers", "35", "--no-progress"]) == 0
+    assert (tmp_path / "Demo.cara").exists()
 
 
 def test_cli_entry_point_help():

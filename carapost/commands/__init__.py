@@ -1,0 +1,1 @@
+"""Implementations of the ``carapost`` sub-commands (the parser lives in :mod:`carapost.cli`)."""

@@ -1,0 +1,103 @@
+"""The carapost command line: every command, its JSON summary, and one-line errors."""
+
+import json
+
+import pytest
+
+from carapost.cli import main
+
+
+@pytest.fixture(scope="module")
+def take_files(tmp_path_factory):
+    from carapost.synth import SynthConfig, generate_take, write_take
+
+    synth = generate_take(SynthConfig(n_markers=35, n_frames=3, width=640, height=360, seed=1))
+    return write_take(synth, tmp_path_factory.mktemp("cli"), "Cli")
+
+
+def run(capsys, *argv):
+    code = main(list(argv))
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_info_on_every_kind(capsys, take_files):
+    code, out, err = run(capsys, "info", str(take_files["pico_0"]), str(take_files["xcp"]))
+    assert code == 0, err
+    assert "pico" in out and "frames: 3" in out and "cameras: 4" in out
+    code, out, _ = run(capsys, "info", str(take_files["pico_1"]), "--json")
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["files"][0]["channel"] == 1 and summary["files"][0]["width"] == 640
+
+
+def test_info_errors_are_one_line(capsys, tmp_path):
+    code, out, err = run(capsys, "info", str(tmp_path / "missing.pico"))
+    assert code == 1
+    assert err.strip().count("\n") == 0 and "missing.pico" in err and "Traceback" not in err
+    bad = tmp_path / "bad.xcp"
+    bad.write_text("<not xml")
+    code, _, err = run(capsys, "info", str(bad))
+    assert code == 1 and "bad.xcp" in err
+
+
+def test_detect_csv_and_save_then_export(capsys, take_files, tmp_path):
+    csv = tmp_path / "d.csv"
+    cara = tmp_path / "d.cara"
+    code, out, err = run(capsys, "detect", str(take_files["pico_0"]), "--calibration", str(take_files["xcp"]),
+                         "--csv", str(csv), "--save", str(cara), "--frames", "0:1", "--black-min-radius", "1.5",
+                         "--no-progress", "--json")
+    assert code == 0, err
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["frames"] == 2 and summary["detections"] > 50
+    header = csv.read_text().splitlines()[0]
+    assert header == "frame,camera,x,y,major,minor,angle,polarity,score"
+    code, out, err = run(capsys, "info", str(cara))
+    assert code == 0 and "frames_detected: [2, 2, 2, 2]" in out
+    code, out, err = run(capsys, "export", str(cara), str(tmp_path / "cams.xcp"), "--frame", "0")
+    assert code == 0, err
+
+
+def test_detect_needs_an_output(capsys, take_files):
+    code, _, err = run(capsys, "detect", str(take_files["pico_0"]))
+    assert code == 1 and "nothing to write" in err
+
+
+def test_convert_video_to_pico(capsys, tmp_path, take_files):
+    import cv2
+    import numpy as np
+
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(folder / f"f_{i}.png"), np.full((40, 60), 10 * i, np.uint8))
+    code, out, err = run(capsys, "convert", str(folder), "--out", str(tmp_path / "out"), "--name", "T",
+                         "--lossless", "--no-progress")
+    assert code == 0, err
+    assert (tmp_path / "out" / "T_0.pico").exists()
+
+
+def test_export_unknown_extension(capsys, take_files, tmp_path):
+    code, _, err = run(capsys, "export", str(take_files["truth"]), str(tmp_path / "x.abc"))
+    assert code == 1 and "error" in err
+
+
+@pytest.mark.slow
+def test_calibrate_real_checkerboards_intrinsics(capsys, real_data, tmp_path):
+    folder = real_data / "pose2sim-demo" / "calibration" / "intrinsics"
+    cams = [str(folder / f"int_cam0{c}_img") for c in (1, 2)]
+    code, out, err = run(capsys, "calibrate", "--target", "checkerboard:4x7:60", "--camera", cams[0], "--camera",
+                         cams[1], "--out", str(tmp_path / "rig.xcp"), "--no-extrinsics", "--no-progress", "--json")
+    assert code == 0, err
+    summary = json.loads(out.strip().splitlines()[-1])
+    from carapost.io.calibration import load_calibration
+
+    q = load_calibration(real_data / "pose2sim-demo" / "calibration" / "Calib.qca.txt")
+    for c in range(2):
+        f = summary["cameras"][c]["focal_length_px"]
+        assert abs(f / q.cameras[c].intrinsics.focal_length - 1) < 0.01
+
+
+def test_calibrate_bad_target(capsys, tmp_path):
+    code, _, err = run(capsys, "calibrate", "--target", "checkerboard:4by7", "--camera", str(tmp_path),
+                       "--out", str(tmp_path / "x.xcp"))
+    assert code == 1 and "checkerboard:4x7:60" in err
