@@ -32,10 +32,8 @@ def _fmt(v: Any) -> str:
 
 
 def cmd_demo(args: argparse.Namespace) -> dict[str, Any]:
-    from carapost.ops.detect import detect_blobs
     from carapost.ops.session import Session
     from carapost.synth import SynthConfig, generate_take, write_take
-    from carapost.synth.evaluate import score_detections, score_points
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -52,8 +50,16 @@ def cmd_demo(args: argparse.Namespace) -> dict[str, Any]:
 
     t0 = time.perf_counter()
     session = Session.from_sources([files[f"pico_{c}"] for c in range(4)], files["xcp"], name="Demo")
+    with session:
+        rep.stage("import", time.perf_counter() - t0, cameras=session.take.n_cameras, frames=session.take.n_frames)
+        return _run(session, synth, files, rep, out, total0)
+
+
+def _run(session: Any, synth: Any, files: dict, rep: _Report, out: Path, total0: float) -> dict[str, Any]:
+    from carapost.ops.detect import detect_blobs
+    from carapost.synth.evaluate import score_detections, score_points
+
     take = session.take
-    rep.stage("import", time.perf_counter() - t0, cameras=take.n_cameras, frames=take.n_frames)
 
     t0 = time.perf_counter()
     with progress_bar("detect blobs") as prog:

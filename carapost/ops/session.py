@@ -188,3 +188,9 @@ class Session:
         for s in self.sources:
             if s is not None:
                 s.source.close()
+
+    def __enter__(self) -> "Session":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
