@@ -67,9 +67,9 @@ def loss_weights(s: np.ndarray, loss: str) -> np.ndarray:
 
 def _group_sum(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     """Sum rows of ``values (N, ...)`` into ``n`` bins by ``index (N,)``."""
-    flat = values.reshape(len(values), -1)
     if len(index) == 0:
         return np.zeros((n,) + values.shape[1:])
+    flat = values.reshape(len(values), -1)
     S = csr_matrix((np.ones(len(index)), (index, np.arange(len(index)))), shape=(n, len(index)))
     return np.asarray(S @ flat).reshape((n,) + values.shape[1:])
 

@@ -127,3 +127,11 @@ def test_scipy_paths_reach_the_same_minimum(solver, jac):
     other = bundle_adjust(obs, intr, R0, t0, X, fixed_points=fixed, solver=solver, jac=jac)
     assert lm.final_cost <= other.final_cost * (1 + 1e-6)
     np.testing.assert_allclose(lm.xyz, other.xyz, atol=1e-4)
+
+
+def test_cameras_only_with_every_point_fixed():
+    """A brim-only bundle: all points fixed, only the poses move."""
+    intr, R, t, X, obs, fixed, rng = scene(F=1, P=0)
+    R0, t0 = perturb(R, t, rng, rot=0.003, trans=0.5)
+    res = bundle_adjust(obs, intr, R0, t0, X, fixed_points=np.ones(X.shape[1], bool), pose_prior=0)
+    np.testing.assert_allclose(camera_centre(res.R, res.t), camera_centre(R, t), atol=1e-4)
