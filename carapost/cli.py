@@ -41,7 +41,7 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, Command]]:
     sub = _Sub(parser.add_subparsers(dest="command"), common)
     commands: dict[str, Command] = {}
 
-    from carapost.commands import calibrate, convert_detect, demo, export
+    from carapost.commands import calibrate, convert_detect, demo, export, process
 
     p = sub.add_parser("info", help="summarise .pico, .xcp/.qca/.toml, .cara, .c3d, video or image-folder files")
     p.add_argument("files", nargs="+")
@@ -50,6 +50,7 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, Command]]:
     commands.update(convert_detect.add_parsers(sub))
     commands.update(export.add_parsers(sub))
     commands.update(calibrate.add_parsers(sub))
+    commands.update(process.add_parsers(sub))
     return parser, commands
 
 

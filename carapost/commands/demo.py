@@ -57,6 +57,7 @@ def cmd_demo(args: argparse.Namespace) -> dict[str, Any]:
 
 def _run(session: Any, synth: Any, files: dict, rep: _Report, out: Path, total0: float) -> dict[str, Any]:
     from carapost.ops.detect import detect_blobs
+    from carapost.ops.pipeline import PipelineOptions, run_pipeline
     from carapost.synth.evaluate import score_detections, score_points
 
     take = session.take
@@ -68,9 +69,15 @@ def _run(session: Any, synth: Any, files: dict, rep: _Report, out: Path, total0:
     rep.stage("detect blobs [active range]", time.perf_counter() - t0, recall=sc.recall, precision=sc.precision,
               median_err_px=sc.median_error_px)
 
+    c3d, fbx = out / "Demo.c3d", out / "Demo.fbx"
+    result = run_pipeline(session, PipelineOptions(seeds=files["seeds"], brim=str(files["brim_json"]), c3d=c3d,
+                                                   fbx=fbx),
+                          report=rep.stage, progress=progress_bar)
+    rep.files += result["files"]
     if take.n_points:
-        ps = score_points(take, synth.truth)
-        rep.stage("accuracy vs ground truth", 0.0, markers=int((ps.marker >= 0).sum()), coverage=ps.coverage,
+        ps = score_points(take, synth.truth, [take.current_frame])
+        face = (ps.marker >= 0) & (ps.marker < len(synth.truth.names))
+        rep.stage("accuracy vs ground truth", 0.0, markers=int(face.sum()), coverage=ps.coverage,
                   median_3d_err_mm=ps.median_error_mm, p95_3d_err_mm=ps.p95_error_mm,
                   mismatches=ps.mismatched_observations)
     cara = session.save(out / "Demo.cara")

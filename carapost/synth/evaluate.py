@@ -36,12 +36,21 @@ class DetectionScore:
         return {k: float(v) for k, v in self.__dict__.items()}
 
 
-def _truth_dots(truth: GroundTruth, f: int, c: int, *, include_partly_hidden: bool) -> tuple[np.ndarray, np.ndarray]:
+def _truth_dots(truth: GroundTruth, f: int, c: int, *, include_partly_hidden: bool,
+                imaged: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Image centroids (n, 2) and ids (n,) of the dots visible in camera c, frame f.
 
-    Face markers have ids 0..M-1, brim dots M..M+B-1.
+    Face markers have ids 0..M-1, brim dots M..M+B-1. With ``imaged``, also dots whose image
+    exists but that ``visible`` leaves out (seen at a grazing angle beyond the generator's
+    visibility limit): a detector may legitimately find them.
     """
     vis = truth.visible[f, :, c].copy()
+    if imaged:
+        grazing = (~truth.occluded[f, :, c] & np.isfinite(truth.centroid_xy[f, :, c]).all(-1)
+                   & (truth.view_angle_deg[f, :, c] < 90))
+        if len(truth.blink_frames) and truth.blink_frames[f]:
+            grazing[truth.eyelid_indices] = False
+        vis |= grazing
     if not include_partly_hidden:
         vis &= ~truth.partly_hidden[f, :, c]
     bvis = truth.brim_visible[f, :, c]
@@ -51,13 +60,14 @@ def _truth_dots(truth: GroundTruth, f: int, c: int, *, include_partly_hidden: bo
 
 
 def detection_identities(dets: Sequence[Detections], truth: GroundTruth, frames: Sequence[int], *,
-                         match_px: float = 1.5) -> dict[tuple[int, int], np.ndarray]:
-    """``{(frame, camera): ids}``: the truth dot id of every detection (-1 = none within match_px)."""
+                         match_px: float = 3.0) -> dict[tuple[int, int], np.ndarray]:
+    """``{(frame, camera): ids}``: the nearest imaged truth dot of every detection (-1 = none
+    within ``match_px``; such a detection is spurious: a pupil, a lash line, noise)."""
     out = {}
     for c, det in enumerate(dets):
         for f in frames:
             xy = det.xy(f)
-            txy, tid = _truth_dots(truth, f, c, include_partly_hidden=True)
+            txy, tid = _truth_dots(truth, f, c, include_partly_hidden=True, imaged=True)
             ids = np.full(len(xy), -1, np.int64)
             if len(xy) and len(txy):
                 d, j = cKDTree(txy).query(xy)
@@ -116,8 +126,12 @@ class PointScore:
 
 
 def score_points(take: Take, truth: GroundTruth, frames: Sequence[int] | None = None, *,
-                 match_px: float = 1.5) -> PointScore:
-    """Identify the take's face points with truth markers and measure coverage and 3D error."""
+                 match_px: float = 3.0) -> PointScore:
+    """Identify the take's face points with truth markers and measure coverage and 3D error.
+
+    An attached detection is *mismatched* when it is the image of another marker than the
+    point's; a detection on no marker (spurious) on a point that has a marker counts too.
+    """
     frames = list(range(take.n_frames)) if frames is None else list(frames)
     M = len(truth.names)
     ids = detection_identities(take.detections, truth, frames, match_px=match_px)

@@ -1,0 +1,65 @@
+"""``carapost process``: import, detect, solve the brim, initialize 3D and write the results."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+from .progress import progress_bar
+
+__all__ = ["cmd_process", "add_parsers"]
+
+
+def cmd_process(args: argparse.Namespace) -> dict[str, Any]:
+    from carapost.ops.pipeline import PipelineOptions, run_pipeline
+    from carapost.ops.session import Session
+
+    if not args.seeds and not args.auto_init:
+        raise ValueError("give --seeds SEEDS.json or --auto-init")
+    t0 = time.perf_counter()
+    try:
+        session = Session.from_sources(args.cameras, args.calibration, name=Path(args.out).stem)
+    except (ValueError, OSError) as exc:
+        raise ValueError(f"import: {exc}") from None
+
+    def report(stage: str, seconds: float, **numbers: Any) -> None:
+        extra = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in numbers.items())
+        print(f"  {stage:<26s} {seconds:7.2f} s   {extra}")
+
+    with session:
+        for m in session.messages:
+            print(f"  warning: {m}")
+        opts = PipelineOptions(frame=args.frame, detect=args.detect, brim=args.brim, seeds=args.seeds,
+                               auto_init=args.auto_init, c3d=args.c3d, fbx=args.fbx)
+        summary = run_pipeline(session, opts, report=report, progress=progress_bar)
+        for m in summary.get("seed_messages", []) + summary.get("brim_messages", []):
+            print(f"  note: {m}")
+        try:
+            session.save(args.out)
+        except (ValueError, OSError) as exc:
+            raise ValueError(f"save: {exc}") from None
+    summary["files"].append(str(args.out))
+    summary["seconds"] = time.perf_counter() - t0
+    print(f"carapost process: {summary['points']} points initialized; wrote {', '.join(summary['files'])} "
+          f"in {summary['seconds']:.1f} s")
+    return summary
+
+
+def add_parsers(sub: Any) -> dict[str, Any]:
+    p = sub.add_parser("process", help="import a take and run detection, brim solve and Initialize 3D",
+                       description="Sources may be .pico files, video files or image folders (one per camera).")
+    p.add_argument("--cameras", nargs="+", required=True, metavar="SRC", help="one source per camera, channel order")
+    p.add_argument("--calibration", required=True, help=".xcp, .qca or .toml camera calibration")
+    p.add_argument("--brim", help="v1.0 | v1.1 | v2.0 | FILE.svg | FILE.json (calibration brim)")
+    init = p.add_mutually_exclusive_group()
+    init.add_argument("--seeds", help="seeds JSON: brim dots and face markers matched across cameras")
+    init.add_argument("--auto-init", action="store_true", help="initialize without seeds")
+    p.add_argument("--frame", type=int, help="frame to initialize (default: the seeds' frame, else 0)")
+    p.add_argument("--detect", choices=("frame", "range", "none"), default="frame",
+                   help="detect blobs in the initialization frame (default) or the whole active range")
+    p.add_argument("--out", required=True, type=Path, help="the .cara project to write")
+    p.add_argument("--c3d", type=Path, help="also export a C3D")
+    p.add_argument("--fbx", type=Path, help="also export an FBX")
+    return {"process": cmd_process}
