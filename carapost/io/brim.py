@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from importlib import resources
 from pathlib import Path
 from xml.sax.saxutils import escape
@@ -24,6 +23,8 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 from carapost.model.take import BrimModel
+
+from .atomic import atomic_write_text
 
 __all__ = [
     "BRIM_FORMAT",
@@ -132,26 +133,16 @@ def load_brim_json(path: str | os.PathLike) -> BrimModel:
     return brim_from_dict(d, source=str(path))
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
+def _write_text(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    atomic_write_text(path, text)
 
 
 def save_brim_json(path: str | os.PathLike, brim: BrimModel, *, version: str = "", description: str = "") -> Path:
     """Write a brim model as JSON (atomically). Returns the path."""
     path = Path(path)
     _check(brim)
-    _atomic_write_text(path, _dumps(brim_to_dict(brim, version=version, description=description)))
+    _write_text(path, _dumps(brim_to_dict(brim, version=version, description=description)))
     return path
 
 
@@ -278,5 +269,5 @@ def brim_svg_text(brim: BrimModel, *, margin: float = 6.0) -> str:
 def write_brim_svg(path: str | os.PathLike, brim: BrimModel) -> Path:
     """Write a brim as SVG (see :func:`brim_svg_text`), atomically. Returns the path."""
     path = Path(path)
-    _atomic_write_text(path, brim_svg_text(brim))
+    _write_text(path, brim_svg_text(brim))
     return path

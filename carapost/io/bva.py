@@ -34,7 +34,7 @@ import numpy as np
 from carapost.model.params import ExportParameters
 from carapost.model.take import Take
 
-from .calibration import atomic_write_bytes
+from .atomic import atomic_write_bytes
 from .export import frame_range, hold_gaps, prepare_export, select_points, unique_names
 
 __all__ = ["export_bva", "bva_text"]

@@ -37,7 +37,7 @@ import numpy as np
 from carapost.model.params import ExportParameters
 from carapost.model.take import Take
 
-from .calibration import atomic_write_bytes
+from .atomic import atomic_write_bytes
 from .export import hold_gaps, prepare_export
 
 __all__ = ["export_bvh", "bvh_text"]

@@ -36,6 +36,7 @@ from carapost import __version__
 from carapost.model.take import PointKind, Recon, Take
 
 from . import c3d_binary as cb
+from .atomic import atomic_write_bytes
 from .c3d_binary import C3DError, ParameterSection
 
 __all__ = ["C3DError", "C3DData", "export_c3d", "read_c3d", "info_c3d", "FORMAT_VERSION",
@@ -228,7 +229,7 @@ def export_c3d(take: Take, path: str | os.PathLike, *, points: np.ndarray | list
               ("CARAPOST", "CaraPost take data", cara)]
     data = cb.encode_c3d(xyz=xyz32, fourth=fourth, frame_rate=float(take.frame_rate), first_frame=c3d_first,
                          scale=RESIDUAL_SCALE, point_groups={"POINT": point_params}, extra_groups=groups)
-    _atomic_write(path, data)
+    atomic_write_bytes(path, data)
 
 
 def _generated_name(pts, i: int) -> str:  # a label made only of spaces
@@ -273,22 +274,6 @@ def _chunked(name: str, values, desc: str) -> list[tuple[str, object, str]]:
         value = list(chunk) if isinstance(values, list) else chunk
         out.append((name if k == 0 else f"{name}{k + 1}", value, desc))
     return out
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
 
 
 # -------------------------------------------------------------------------------------- read

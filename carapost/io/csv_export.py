@@ -26,7 +26,7 @@ import numpy as np
 from carapost.model.params import ExportParameters
 from carapost.model.take import ObsSource, Take
 
-from .calibration import atomic_write_bytes
+from .atomic import atomic_write_bytes
 from .export import frame_range, prepare_export, select_points, unique_names
 
 __all__ = ["export_csv_3d", "export_csv_2d", "read_csv_3d", "CSV3D", "csv_3d_text", "csv_2d_text"]

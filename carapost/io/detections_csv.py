@@ -12,13 +12,13 @@ from __future__ import annotations
 import csv
 import io
 import os
-import tempfile
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
 
 from ..model.detections import DETECTION_FIELDS, Detections
+from .atomic import atomic_write_text
 
 __all__ = ["HEADER", "write_detections_csv", "read_detections_csv", "tables_from_detections",
            "detections_from_tables"]
@@ -73,17 +73,7 @@ def write_detections_csv(path: str | os.PathLike, rows: Rows) -> None:
         for i in range(n):
             w.writerow([f, c, *(f"{float(xs[k][i]):.9g}" for k in ("x", "y", "major", "minor", "angle")),
                         int(pol[i]), f"{float(xs['score'][i]):.9g}"])
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent if str(path.parent) else ".")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8", newline="") as fh:
-            fh.write(buf.getvalue())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    atomic_write_text(path, buf.getvalue())
 
 
 def read_detections_csv(path: str | os.PathLike) -> dict[tuple[int, int], dict[str, np.ndarray]]:

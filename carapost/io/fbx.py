@@ -36,7 +36,7 @@ from carapost import __version__
 from carapost.model.params import ExportParameters
 from carapost.model.take import Take
 
-from .calibration import atomic_write_bytes
+from .atomic import atomic_write_bytes
 from .export import UNIT_SCALE, ExportData, axis_matrix, prepare_export, unique_names
 from .fbx_binary import (
     CREATION_TIME,

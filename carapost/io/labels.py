@@ -17,8 +17,9 @@ from __future__ import annotations
 import codecs
 import os
 import re
-import tempfile
 from pathlib import Path
+
+from .atomic import atomic_write_bytes
 
 __all__ = ["LabelFileError", "read_label_file", "parse_labels", "merge_labels", "write_label_file",
            "COPY_SUFFIX"]
@@ -152,16 +153,4 @@ def write_label_file(path: str | os.PathLike, labels: list[str], *,
     if not path.parent.is_dir():
         raise LabelFileError(f"{path}: cannot write, the folder {path.parent} does not exist")
     data = ("\n".join(lines) + "\n").encode("utf-8")
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    atomic_write_bytes(path, data)

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .calibration import atomic_write_bytes
+from .atomic import atomic_write_bytes
 
 __all__ = ["SeedsFileError", "BrimSeed", "FaceSeed", "Seeds", "SeedMiss", "SnappedSeeds", "read_seeds",
            "write_seeds", "seeds_from_dict", "snap_seeds"]

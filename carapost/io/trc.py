@@ -31,7 +31,7 @@ import numpy as np
 from carapost.model.params import ExportParameters
 from carapost.model.take import Take
 
-from .calibration import atomic_write_bytes
+from .atomic import atomic_write_bytes
 from .export import prepare_export
 
 __all__ = ["TRCData", "TRCError", "export_trc", "trc_text", "read_trc"]
