@@ -18,6 +18,15 @@ class CliError(Exception):
     """A failure to report to the user as one line (no traceback)."""
 
 
+def _cmd_gui(args: argparse.Namespace) -> dict:
+    from carapost.ui.app import main as gui_main
+
+    code = gui_main(args.files)
+    if code:
+        raise CliError(f"the application exited with status {code}")
+    return {}
+
+
 def _cmd_info(args: argparse.Namespace) -> dict:
     from carapost.commands.info import file_info, format_info
 
@@ -43,6 +52,9 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, Command]]:
 
     from carapost.commands import calibrate, convert_detect, demo, export, process
 
+    p = sub.add_parser("gui", help="open the desktop application (the default with no command)")
+    p.add_argument("files", nargs="*", help="a .cara, a .pico of a take, or one source per camera")
+    commands["gui"] = _cmd_gui
     p = sub.add_parser("info", help="summarise .pico, .xcp/.qca/.toml, .cara, .c3d, video or image-folder files")
     p.add_argument("files", nargs="+")
     commands["info"] = _cmd_info
@@ -83,9 +95,8 @@ def _setup_logging(log_file: str | None) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     parser, commands = _parser()
     args = parser.parse_args(argv)
-    if args.command is None:
-        parser.print_help()
-        return 0
+    if args.command is None:  # plain `carapost` opens the desktop application
+        args = parser.parse_args(["gui"])
     if args.no_progress:
         from carapost.commands import progress
 

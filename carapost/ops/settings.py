@@ -32,6 +32,7 @@ def set_property(take: Take, group: str, name: str, value: Any) -> AttributeChan
     key = next(k for k, s in take.params.sections() if s is section)
     new = type(section).from_dict(section.to_dict())
     new.set(name, value)
+    new.validate()  # cross-field rules (e.g. Min Radius <= Max Radius)
     label = new.field_by_label(name).metadata["label"]
     return AttributeChange.capture(take, f"params.{key}", new, f"{section.title}: {label} = {value}")
 
