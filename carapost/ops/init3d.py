@@ -20,7 +20,7 @@ from carapost.core.init3d import Init3DResult, initialize_3d
 from carapost.io.seeds import SnappedSeeds
 from carapost.model.take import ObsSource, PointKind, Recon, Take
 
-from .change import ArrayPatch, Change, Composite, PointsAdded
+from .change import ArrayPatch, AttributeChange, Change, Composite, PointsAdded
 from .points import PointBlock, _empty_columns
 
 __all__ = ["add_seed_points", "initialize_3d_op", "bundle_current_frame", "bundle_sequence", "seed_columns"]
@@ -30,8 +30,9 @@ def _frame_detections(take: Take, frame: int) -> list[dict[str, np.ndarray]]:
     return [{k: np.asarray(v) for k, v in take.detections[c].frame(frame).items()} for c in range(take.n_cameras)]
 
 
-def add_seed_points(take: Take, frame: int, snapped: SnappedSeeds) -> PointsAdded:
-    """New points from the face seeds of a seeds file (named seeds become labelled points)."""
+def add_seed_points(take: Take, frame: int, snapped: SnappedSeeds) -> Composite:
+    """New points from the face seeds of a seeds file (named seeds become labelled points and
+    join the Labelling pane's list)."""
     seeds = snapped.face
     if not seeds:
         raise ValueError("the seeds file has no face seed matched in two or more cameras")
@@ -43,8 +44,11 @@ def add_seed_points(take: Take, frame: int, snapped: SnappedSeeds) -> PointsAdde
             arrays["obs_det"][frame, j, c] = i
             arrays["obs_src"][frame, j, c] = ObsSource.BLOB
     labels = [name or "" for name, _ in seeds]
-    return PointsAdded(n, int(PointKind.FACE), labels, np.full(n, -1, np.int32), arrays,
-                       text=f"Add {n} seed points")
+    changes: list[Change] = [PointsAdded(n, int(PointKind.FACE), labels, np.full(n, -1, np.int32), arrays)]
+    new_labels = [lab for lab in labels if lab and lab not in take.labels]
+    if new_labels:
+        changes.append(AttributeChange.capture(take, "labels", take.labels + new_labels, ""))
+    return Composite(changes, f"Add {n} seed points")
 
 
 def seed_columns(take: Take, frame: int) -> np.ndarray:
