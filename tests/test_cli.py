@@ -101,3 +101,26 @@ def test_calibrate_bad_target(capsys, tmp_path):
     code, _, err = run(capsys, "calibrate", "--target", "checkerboard:4by7", "--camera", str(tmp_path),
                        "--out", str(tmp_path / "x.xcp"))
     assert code == 1 and "checkerboard:4x7:60" in err
+
+
+def test_label_command_repairs_a_swap(capsys, tmp_path):
+    import numpy as np
+
+    from carapost.io.c3d import read_c3d
+    from carapost.io.marker_csv import read_marker_csv, write_marker_csv
+
+    rng = np.random.default_rng(0)
+    F, M = 120, 12
+    base = rng.uniform(-60, 60, (M, 3))
+    t = np.linspace(0, 2 * np.pi, F)
+    xyz = base[None] + 3 * np.sin(t)[:, None, None] * rng.normal(size=(1, M, 3))
+    swapped = xyz.copy()
+    swapped[60:, [2, 5]] = swapped[60:, [5, 2]]
+    names = [f"M{i}" for i in range(M)]
+    src = tmp_path / "in.csv"
+    write_marker_csv(src, names, swapped, frame_rate=60.0)
+    code, out, err = run(capsys, "label", str(src), str(tmp_path / "out.csv"), "--no-progress", "--json")
+    assert code == 0, err
+    back = read_marker_csv(tmp_path / "out.csv")
+    order = [back.names.index(n) for n in names]
+    np.testing.assert_allclose(back.xyz[:, order], xyz, atol=1e-3)

@@ -12,8 +12,11 @@ import numpy as np
 from carapost.core.calib_targets import TargetSpec
 from carapost.core.calibrate import RigCalibration, calibrate_cameras
 from carapost.io.calibration import Calibration, CameraCalibration, save_calibration
+from carapost.model.take import Take
 
-__all__ = ["read_grey", "parse_target", "calibrate_cameras_to_file"]
+from .change import ArrayPatch, AttributeChange, Change, Composite
+
+__all__ = ["read_grey", "parse_target", "calibrate_cameras_to_file", "apply_calibration"]
 
 
 def read_grey(path: str | os.PathLike) -> np.ndarray:
@@ -53,3 +56,22 @@ def calibrate_cameras_to_file(image_sets: Sequence[Sequence[str | os.PathLike]],
     calib = Calibration([CameraCalibration(**r) for r in rig.camera_records()], source=str(output), format="xcp")
     save_calibration(output, calib)
     return calib, rig
+
+
+def apply_calibration(take: Take, calib: Calibration) -> Composite:
+    """"Import XCP": the calibration's intrinsics and (per-frame) poses replace the take's.
+
+    Raises
+    ------
+    ValueError
+        If the calibration has a different number of cameras.
+    """
+    if len(calib.cameras) != take.n_cameras:
+        raise ValueError(f"{calib.source}: calibration has {len(calib.cameras)} cameras, the take has "
+                         f"{take.n_cameras}")
+    R, t = calib.poses(take.n_frames)
+    changes: list[Change] = [AttributeChange.capture(take, f"cameras.{c}.intrinsics", cam.intrinsics)
+                             for c, cam in enumerate(calib.cameras)]
+    changes.append(ArrayPatch.capture(take, "R", (slice(None),), np.asarray(R, float)))
+    changes.append(ArrayPatch.capture(take, "t", (slice(None),), np.asarray(t, float)))
+    return Composite(changes, f"Import XCP {os.path.basename(calib.source)}")

@@ -20,6 +20,7 @@ __all__ = [
     "unlabel_points",
     "clear_all_labels",
     "delete_labels",
+    "rename_label",
     "create_stick",
     "create_stick_mesh",
     "edit_stick_colour",
@@ -101,6 +102,28 @@ def delete_labels(take: Take, names: Sequence[str]) -> Composite:
     return Composite([_labels_change(take, [lab for lab in take.labels if lab not in gone], ""),
                       _points_change(take, ["" if lab in gone else lab for lab in take.points.labels], "")],
                      f"Delete {len(gone)} label(s)")
+
+
+def rename_label(take: Take, old: str, new: str) -> Composite:
+    """Rename a label of the Labelling pane's list (and on the point holding it).
+
+    Raises
+    ------
+    ValueError
+        If ``old`` is not a label, ``new`` is empty, contains white space or already exists.
+    """
+    new = new.strip()
+    if old not in take.labels:
+        raise ValueError(f"Rename label: there is no label {old!r}")
+    if not new or any(ch.isspace() for ch in new):
+        raise ValueError(f"Rename label: {new!r} is not a valid label (no spaces, not empty)")
+    if new in take.labels:
+        raise ValueError(f"Rename label: {new!r} already exists")
+    labels = [new if lab == old else lab for lab in take.labels]
+    pts = take.points.copy()
+    pts.labels = [new if lab == old else lab for lab in pts.labels]
+    return Composite([AttributeChange.capture(take, "labels", labels), AttributeChange.capture(take, "points", pts)],
+                     f"Rename label {old} to {new}")
 
 
 def _sticks_change(take: Take, sticks: np.ndarray, colours: np.ndarray, text: str) -> Composite:

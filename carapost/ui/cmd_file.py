@@ -65,7 +65,7 @@ def import_xcp(w: "MainWindow") -> None:
 
     path = w.prompts.open_file("Import XCP", "Calibrations (*.xcp *.qca *.toml);;All files (*)", w.last_dir())
     if path:
-        w.apply(adapters.apply_calibration(w.doc.take, load_calibration(path)))
+        w.apply(adapters.ops("calibrate").apply_calibration(w.doc.take, load_calibration(path)))
 
 
 def import_labels_cara(w: "MainWindow") -> None:

@@ -103,7 +103,7 @@ class LabellingPane(QWidget):
         if new == old:
             return
         try:
-            self.doc.apply(adapters.rename_label(self.doc.take, old, new))
+            self.doc.apply(label_ops.rename_label(self.doc.take, old, new))
         except ValueError as exc:
             log.error("%s", exc)
         self.rebuild()

@@ -1,0 +1,47 @@
+"""``carapost label IN OUT``: label (and repair swaps in) marker trajectories from C3D or CSV."""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+from .progress import progress_bar
+
+__all__ = ["cmd_label", "add_parsers"]
+
+
+def cmd_label(args: argparse.Namespace) -> dict[str, Any]:
+    from carapost.ops.label_file import label_file
+
+    t0 = time.perf_counter()
+    with progress_bar("label", unit="frame") as prog:
+        report = label_file(args.input, args.output, method=args.method, template=args.template, progress=prog,
+                            reference_frame=args.reference_frame, ignore_markers=args.ignore or (),
+                            hand_heuristics=args.hand_heuristics, plot_every=args.plot_every,
+                            plot_dir=args.plot_dir, units=args.units)
+    dt = time.perf_counter() - t0
+    report = dict(report)
+    report["seconds"] = dt
+    print(f"carapost label: wrote {args.output} ({args.method}) in {dt:.1f} s")
+    for key in ("markers", "frames", "labelled_fraction", "swaps_repaired", "relabelled"):
+        if key in report:
+            print(f"  {key}: {report[key]}")
+    return report
+
+
+def add_parsers(sub: Any) -> dict[str, Any]:
+    p = sub.add_parser("label", help="label marker trajectories (C3D or CSV) and repair swapped labels")
+    p.add_argument("input", help="IN.c3d or IN.csv")
+    p.add_argument("output", help="OUT.c3d or OUT.csv")
+    p.add_argument("--method", choices=("assignment", "nearest"), default="assignment",
+                   help="global per-frame assignment (default) or seed 002's nearest-neighbour method")
+    p.add_argument("--template", type=Path, help="marker-set template (.json) naming the markers")
+    p.add_argument("--reference-frame", type=int, help="frame whose input labels are right (default: automatic)")
+    p.add_argument("--ignore", nargs="+", metavar="NAME", help="markers to leave as they are")
+    p.add_argument("--hand-heuristics", action="store_true", help="crossing-bone and fingertip rules (hand names)")
+    p.add_argument("--plot-every", type=int, default=0, help="save an inspection plot every N frames")
+    p.add_argument("--plot-dir", type=Path, help="folder for the inspection plots")
+    p.add_argument("--units", choices=("mm", "cm", "m"), help="CSV input units (default mm)")
+    return {"label": cmd_label}

@@ -1,0 +1,175 @@
+"""The default labeller: tracklets + global assignment against motion and shape predictions.
+
+1. :func:`~carapost.core.label_tracks.link_frames` links points of consecutive frames where
+   the link is unambiguous (mutual nearest neighbours after a constant-velocity prediction,
+   ratio test both ways, no newly appearing point close by); chains of links are *tracklets*.
+   On clean data nearly every point of nearly every frame is linked, so this vectorised step
+   does most of the work.
+2. Tracklets containing hinted points (the labelled reference frame, fallback frames, user
+   mappings, fully labelled markers) take those labels.
+3. Every other tracklet is an *event* where it starts (going forwards from the reference
+   frame; where it ends, going backwards). All tracklets starting in a frame are assigned
+   together by a global optimal assignment (Hungarian, :func:`scipy.optimize.linear_sum_assignment`)
+   to the markers that are unoccupied in that frame (:class:`~carapost.core.label_engine.AssignmentEngine`).
+   The cost is the -2 log-likelihood of the best of each marker's predictions:
+
+   * a marker seen in the adjacent frame and the one before: constant velocity;
+   * a marker missing for a while, or seen in one adjacent frame only: the rigid motion of its
+     most rigidly attached labelled neighbours (Kabsch fit) since it was last seen carries its
+     last position (neighbourhood-shape consistency); the neighbours' fit residual and the
+     spread of their distances widen the uncertainty;
+   * a marker never seen: the template (if given) fitted to the labelled markers around it.
+
+   A tracklet farther than ``gate`` sigmas from every prediction, or (a ghost) nearer to an
+   occupied marker than half a missing marker's spacing, stays unlabelled.
+4. Optionally (default) :func:`~carapost.core.swaps.detect_swaps` checks the result, trusting
+   the reference frame, and its repairs are applied.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from .label_engine import AssignmentEngine, AssignmentParams, kabsch, motion_scales
+from .label_tracks import Tracklets, build_tracklets, link_frames
+from .labelling import LabelResult, ProgressFn, check_hints, check_points
+
+__all__ = ["AssignmentParams", "AssignmentEngine", "label_assignment", "kabsch", "motion_scales"]
+
+
+# ---------------------------------------------------------------------------- labeller
+def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: int, *,
+                     template: np.ndarray | None = None, ignore: Sequence[int] = (),
+                     params: AssignmentParams | None = None, ratio: float = 0.5, passes: int = 2,
+                     repair_swaps: bool = True, progress: ProgressFn | None = None) -> LabelResult:
+    """Label unlabelled point clouds (the default method).
+
+    Parameters
+    ----------
+    points : float (F, N, 3)
+        Point clouds, mm, any order within a frame, NaN rows empty.
+    hints : int (F, N) or None
+        Known labels (-1 unknown): a labelled reference frame, fallback frames, frame
+        mappings, fully labelled markers. Hinted points always keep their hint.
+    n_markers : int
+    template : float (M, 3), optional
+        Neutral positions of the markers (NaN rows unknown). Without hints, the frame with the
+        most points is labelled from it (:func:`~carapost.core.template.label_from_template`);
+        it also predicts markers not yet seen.
+    ignore : sequence of int
+        Markers to leave alone: their hinted points keep their hints and take no part in the
+        labelling; the markers are never assigned to other points.
+    params : AssignmentParams, optional
+    ratio, passes : float, int
+        Linking (see :func:`~carapost.core.label_tracks.link_frames`).
+    repair_swaps : bool
+        Run :func:`~carapost.core.swaps.detect_swaps` on the result and apply its repairs.
+    progress : callable, optional
+        ``progress(done, total)`` over the events; returning False stops early (the labels
+        found so far are returned).
+
+    Returns
+    -------
+    LabelResult
+        ``report``: ``reference_frame``, ``tracklets``, ``events``, ``unlabelled_points``,
+        ``link_residual_mm`` (median, p90), ``swaps_repaired``, ``conflicts``.
+
+    Raises
+    ------
+    ValueError
+        Bad shapes or hints, or neither hints nor a template to start from.
+    """
+    pts, valid = check_points(points)
+    F, N, _ = pts.shape
+    if n_markers < 1:
+        raise ValueError("n_markers must be at least 1")
+    h = check_hints(hints, (F, N), n_markers, valid)
+    p = params or AssignmentParams()
+    ign = np.zeros(n_markers, bool)
+    for m in ignore:
+        if not 0 <= int(m) < n_markers:
+            raise ValueError(f"ignored marker {m} is outside 0..{n_markers - 1}")
+        ign[int(m)] = True
+    keep_h = h.copy()
+    ign_pts = (h >= 0) & ign[np.maximum(h, 0)]
+    work = pts.copy()
+    work[ign_pts] = np.nan
+    h = np.where(ign_pts, -1, h)
+    wvalid = valid & ~ign_pts
+    tp = None if template is None else np.asarray(template, np.float64)
+    if tp is not None and tp.shape != (n_markers, 3):
+        raise ValueError(f"template must have shape ({n_markers}, 3), got {tp.shape}")
+    if not (h >= 0).any():
+        if tp is None:
+            raise ValueError("labelling needs hints (a labelled frame) or a template")
+        from .template import label_from_template
+        ref = int(np.argmax(wvalid.sum(1)))
+        fit = label_from_template(work[ref][wvalid[ref]], tp)
+        h[ref, np.flatnonzero(wvalid[ref])] = np.where(ign[np.maximum(fit.labels, 0)], -1, fit.labels)
+    t0 = int(np.flatnonzero((h >= 0).any(1))[0])
+
+    links, stats = link_frames(work, hints=h, ratio=ratio, passes=passes)
+    tracks = build_tracklets(work, links)
+    tracks = _split_conflicting_hints(work, links, tracks, h)
+    sig = p.motion_sigma if p.motion_sigma is not None else max(stats.p90, p.min_sigma)
+    rel, fastest = motion_scales(np.where(wvalid[..., None], work, 0.0), links)
+    eng = AssignmentEngine(tracks, n_markers, p, sig, template=tp, relative_sigma=rel, max_step=fastest)
+    eng.template = None if tp is None else np.where(ign[:, None], np.nan, tp)
+    # seeds
+    sf, sj = np.nonzero(h >= 0)
+    st = tracks.tid[sf, sj]
+    seeds: dict[int, int] = {}
+    for t, L in zip(st.tolist(), h[sf, sj].tolist()):
+        seeds.setdefault(t, L)
+    order = sorted(seeds, key=lambda t: (abs(int(tracks.start[t]) - t0), t))
+    for t in order:
+        eng.assign(t, seeds[t])
+    eng.allowed = ~ign
+    hinted = np.flatnonzero((h >= 0).any(1))
+    eng.set_reference_spacing(hinted[np.linspace(0, hinted.size - 1, min(hinted.size, 20)).astype(int)])
+    eng.run(t0, progress)
+
+    labels = np.where(tracks.tid >= 0, eng.label[np.maximum(tracks.tid, 0)], -1).astype(np.int32)
+    labels[ign_pts] = keep_h[ign_pts]
+    report = {"method": "assignment", "reference_frame": t0, "tracklets": len(tracks), "events": eng.events,
+              "link_residual_mm": [round(stats.median, 4), round(stats.p90, 4)],
+              "motion_sigma_mm": round(float(eng.sig_cv), 4),
+              "relative_sigma_mm": round(float(eng.sig_rel), 4), "conflicts": eng.conflicts, "swaps_repaired": 0}
+    if repair_swaps:
+        from .swaps import detect_swaps, relabel_points
+        xyz = np.full((F, n_markers, 3), np.nan)
+        f, j = np.nonzero(labels >= 0)
+        xyz[f, labels[f, j]] = pts[f, j]
+        rep = detect_swaps(xyz, fixed=np.flatnonzero(ign), reference_frame=t0)
+        # a repair never overrides a hint: drop those that would move a hinted point
+        hinted_frames = np.flatnonzero((h >= 0).any(1))
+        keep = []
+        for r in rep.relabels:
+            fr = hinted_frames[(hinted_frames >= r.start) & (hinted_frames < r.end)]
+            if not np.isin(h[fr], r.markers).any():
+                keep.append(r)
+        if keep:
+            labels = relabel_points(labels, keep)
+            report["swaps_repaired"] = len(keep)
+    report["unlabelled_points"] = int((valid & (labels < 0)).sum())
+    return LabelResult(labels, report)
+
+
+def _split_conflicting_hints(points: np.ndarray, links: np.ndarray, tracks: Tracklets,
+                             hints: np.ndarray) -> Tracklets:
+    """Cut tracklets whose hinted samples disagree (at the first sample of each new hint)."""
+    hs = hints[tracks.frames, tracks.index]
+    tid = np.repeat(np.arange(len(tracks)), np.diff(tracks.offsets))
+    k = np.flatnonzero(hs >= 0)
+    if k.size < 2:
+        return tracks
+    same_t = tid[k[1:]] == tid[k[:-1]]
+    change = same_t & (hs[k[1:]] != hs[k[:-1]])
+    if not change.any():
+        return tracks
+    lk = links.copy()
+    cut = k[1:][change]
+    lk[tracks.frames[cut], tracks.index[cut]] = -1
+    return build_tracklets(points, lk)
