@@ -50,7 +50,7 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, Command]]:
     sub = _Sub(parser.add_subparsers(dest="command"), common)
     commands: dict[str, Command] = {}
 
-    from carapost.commands import calibrate, convert_detect, demo, export, label, process
+    from carapost.commands import batch, calibrate, convert_detect, demo, export, label, process
 
     p = sub.add_parser("gui", help="open the desktop application (the default with no command)")
     p.add_argument("files", nargs="*", help="a .cara, a .pico of a take, or one source per camera")
@@ -64,6 +64,7 @@ def _parser() -> tuple[argparse.ArgumentParser, dict[str, Command]]:
     commands.update(calibrate.add_parsers(sub))
     commands.update(process.add_parsers(sub))
     commands.update(label.add_parsers(sub))
+    commands.update(batch.add_parsers(sub))
     return parser, commands
 
 
