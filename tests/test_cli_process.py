@@ -94,3 +94,45 @@ def test_pipeline_undoes_back_to_the_imported_take(take):
         while s.stack.can_redo():
             s.stack.redo()
         assert take_diff(s.take, after) == []
+
+
+@pytest.fixture(scope="module")
+def moving_take(tmp_path_factory):
+    from carapost.synth import SynthConfig, generate_take, write_take
+
+    synth = generate_take(SynthConfig(n_markers=35, n_frames=12, seed=5))
+    return synth, write_take(synth, tmp_path_factory.mktemp("track"), "T")
+
+
+def test_process_tracks_fills_and_stabilizes(capsys, moving_take, tmp_path):
+    synth, files = moving_take
+    out = tmp_path / "t.cara"
+    code = main(["process", "--cameras", *picos(files), "--calibration", str(files["xcp"]), "--brim",
+                 str(files["brim_json"]), "--seeds", str(files["seeds"]), "--track", "--fill", "--stabilize",
+                 "--out", str(out), "--no-progress", "--json"])
+    text, err = capsys.readouterr()
+    assert code == 0, err
+    summary = json.loads(text.strip().splitlines()[-1])
+    stages = {s["stage"]: s for s in summary["stages"]}
+    assert list(stages)[-3:] == ["track", "interpolate gaps", "stabilize"]
+    assert stages["track"]["frames"] == 11 and stages["stabilize"]["points"] >= 3
+
+    from carapost.io.cara import load_take
+    from carapost.synth.evaluate import score_points
+
+    t = load_take(out).take
+    seeded = np.isfinite(t.xyz[0, t.face_points()]).all(-1)
+    ps = score_points(t, synth.truth)
+    assert ps.swaps == 0 and ps.mismatched_observations == 0
+    assert ps.median_error_mm < 0.2
+    # every point initialized at the seeds' frame has a position (tracked or filled) in every frame
+    assert np.isfinite(t.xyz[:, t.face_points()[seeded]]).all()
+    assert np.isfinite(t.xyz_stabilized[:, t.face_points()[seeded]]).all()
+
+
+def test_process_rom_excludes_seeds(capsys, take, tmp_path):
+    _, files = take
+    with pytest.raises(SystemExit) as exc:  # argparse: usage error, exit status 2
+        main(["process", "--cameras", *picos(files), "--calibration", str(files["xcp"]), "--seeds",
+              str(files["seeds"]), "--rom", str(tmp_path / "rom.cara"), "--out", str(tmp_path / "x.cara")])
+    assert exc.value.code == 2 and "not allowed with" in capsys.readouterr().err

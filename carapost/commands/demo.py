@@ -1,4 +1,6 @@
-"""``carapost demo``: generate a synthetic take and run every pipeline stage on it.
+"""``carapost demo``: generate a synthetic take and run every pipeline stage on it: detect blobs,
+solve the brim, Initialize 3D from the seeds, track the whole take both ways, fill the gaps,
+stabilize, and export C3D, FBX and the ``.cara``.
 
 Ends with a report: what was done, how long each stage took, accuracy against the ground
 truth, and the files written.
@@ -57,8 +59,10 @@ def cmd_demo(args: argparse.Namespace) -> dict[str, Any]:
 
 def _run(session: Any, synth: Any, files: dict, rep: _Report, out: Path, total0: float) -> dict[str, Any]:
     from carapost.ops.detect import detect_blobs
-    from carapost.ops.pipeline import PipelineOptions, run_pipeline
-    from carapost.synth.evaluate import score_detections, score_points
+    from carapost.io.export import export_take
+    from carapost.ops.fill import interpolate_gaps
+    from carapost.ops.pipeline import PipelineOptions, run_pipeline, stabilize_all, track_both_ways
+    from carapost.synth.evaluate import score_detections
 
     take = session.take
 
@@ -69,17 +73,34 @@ def _run(session: Any, synth: Any, files: dict, rep: _Report, out: Path, total0:
     rep.stage("detect blobs [active range]", time.perf_counter() - t0, recall=sc.recall, precision=sc.precision,
               median_err_px=sc.median_error_px)
 
-    c3d, fbx = out / "Demo.c3d", out / "Demo.fbx"
-    result = run_pipeline(session, PipelineOptions(seeds=files["seeds"], brim=str(files["brim_json"]), c3d=c3d,
-                                                   fbx=fbx),
+    result = run_pipeline(session, PipelineOptions(seeds=files["seeds"], brim=str(files["brim_json"])),
                           report=rep.stage, progress=progress_bar)
-    rep.files += result["files"]
+    frame = take.current_frame
     if take.n_points:
-        ps = score_points(take, synth.truth, [take.current_frame])
-        face = (ps.marker >= 0) & (ps.marker < len(synth.truth.names))
-        rep.stage("accuracy vs ground truth", 0.0, markers=int(face.sum()), coverage=ps.coverage,
-                  median_3d_err_mm=ps.median_error_mm, p95_3d_err_mm=ps.p95_error_mm,
-                  mismatches=ps.mismatched_observations)
+        _score(rep, take, synth, [frame], "accuracy at the seeds' frame")
+
+    t0 = time.perf_counter()
+    numbers = track_both_ways(session, frame, progress=progress_bar)
+    rep.stage("track forwards + backwards", time.perf_counter() - t0, **numbers)
+    _score(rep, take, synth, None, "tracking accuracy, all frames")
+
+    t0 = time.perf_counter()
+    change = interpolate_gaps(take)
+    session.apply(change)
+    rep.stage("interpolate gaps", time.perf_counter() - t0,
+              **{k: v for k, v in change.report.items() if k in ("filled", "unfilled")})
+
+    t0 = time.perf_counter()
+    try:
+        rep.stage("stabilize data [assisted]", time.perf_counter() - t0, **stabilize_all(session))
+    except ValueError as exc:  # too few gap-free points: report it, export the raw data
+        print(f"  stabilize skipped: {exc}")
+
+    for path in (out / "Demo.c3d", out / "Demo.fbx"):
+        t0 = time.perf_counter()
+        export_take(take, path)
+        rep.files.append(str(path))
+        rep.stage(f"export {path.suffix[1:].upper()}", time.perf_counter() - t0)
     cara = session.save(out / "Demo.cara")
     rep.files.append(str(cara))
     total = time.perf_counter() - total0
@@ -87,6 +108,15 @@ def _run(session: Any, synth: Any, files: dict, rep: _Report, out: Path, total0:
     for f in rep.files:
         print(f"  {f}")
     return {"stages": rep.stages, "files": rep.files, "seconds": total}
+
+
+def _score(rep: _Report, take: Any, synth: Any, frames: list[int] | None, what: str) -> None:
+    from carapost.synth.evaluate import score_points
+
+    ps = score_points(take, synth.truth, frames)
+    face = (ps.marker >= 0) & (ps.marker < len(synth.truth.names))
+    rep.stage(what, 0.0, markers=int(face.sum()), coverage=ps.coverage, median_3d_err_mm=ps.median_error_mm,
+              p95_3d_err_mm=ps.p95_error_mm, mismatches=ps.mismatched_observations, swaps=ps.swaps)
 
 
 def add_parsers(sub: argparse._SubParsersAction) -> dict[str, Any]:

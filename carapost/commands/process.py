@@ -1,4 +1,5 @@
-"""``carapost process``: import, detect, solve the brim, initialize 3D and write the results."""
+"""``carapost process``: import, detect, solve the brim, initialize 3D (or from a ROM), track, fill,
+stabilize and write the results."""
 
 from __future__ import annotations
 
@@ -16,8 +17,8 @@ def cmd_process(args: argparse.Namespace) -> dict[str, Any]:
     from carapost.ops.pipeline import PipelineOptions, run_pipeline
     from carapost.ops.session import Session
 
-    if not args.seeds and not args.auto_init:
-        raise ValueError("give --seeds SEEDS.json or --auto-init")
+    if not args.seeds and not args.auto_init and not args.rom:
+        raise ValueError("give --seeds SEEDS.json, --auto-init or --rom ROM.cara")
     t0 = time.perf_counter()
     try:
         session = Session.from_sources(args.cameras, args.calibration, name=Path(args.out).stem)
@@ -32,7 +33,9 @@ def cmd_process(args: argparse.Namespace) -> dict[str, Any]:
         for m in session.messages:
             print(f"  warning: {m}")
         opts = PipelineOptions(frame=args.frame, detect=args.detect, brim=args.brim, seeds=args.seeds,
-                               auto_init=args.auto_init, c3d=args.c3d, fbx=args.fbx)
+                               auto_init=args.auto_init, rom=args.rom, track=args.track,
+                               fill=args.fill_method if args.fill else None, stabilize=args.stabilize,
+                               c3d=args.c3d, fbx=args.fbx)
         summary = run_pipeline(session, opts, report=report, progress=progress_bar)
         for m in summary.get("seed_messages", []) + summary.get("brim_messages", []):
             print(f"  note: {m}")
@@ -42,13 +45,18 @@ def cmd_process(args: argparse.Namespace) -> dict[str, Any]:
             raise ValueError(f"save: {exc}") from None
     summary["files"].append(str(args.out))
     summary["seconds"] = time.perf_counter() - t0
-    print(f"carapost process: {summary['points']} points initialized; wrote {', '.join(summary['files'])} "
+    tracked = next((st for st in summary["stages"] if st["stage"] == "track"), None)
+    what = f"{summary['points']} points initialized"
+    if tracked is not None:
+        what += f", {100 * tracked['coverage']:.1f}% of face point-frames tracked"
+    print(f"carapost process: {what}; wrote {', '.join(summary['files'])} "
           f"in {summary['seconds']:.1f} s")
     return summary
 
 
 def add_parsers(sub: Any) -> dict[str, Any]:
-    p = sub.add_parser("process", help="import a take and run detection, brim solve and Initialize 3D",
+    p = sub.add_parser("process", help="import a take and run detection, brim solve, Initialize 3D, tracking, "
+                                       "gap filling and stabilization",
                        description="Sources may be .pico files, video files or image folders (one per camera).")
     p.add_argument("--cameras", nargs="+", required=True, metavar="SRC", help="one source per camera, channel order")
     p.add_argument("--calibration", required=True, help=".xcp, .qca or .toml camera calibration")
@@ -56,9 +64,18 @@ def add_parsers(sub: Any) -> dict[str, Any]:
     init = p.add_mutually_exclusive_group()
     init.add_argument("--seeds", help="seeds JSON: brim dots and face markers matched across cameras")
     init.add_argument("--auto-init", action="store_true", help="initialize without seeds")
+    init.add_argument("--rom", type=Path, help="solved ROM .cara of the same actor and marker set: Initialize from ROM")
     p.add_argument("--frame", type=int, help="frame to initialize (default: the seeds' frame, else 0)")
     p.add_argument("--detect", choices=("frame", "range", "none"), default="frame",
                    help="detect blobs in the initialization frame (default) or the whole active range")
+    p.add_argument("--track", action="store_true",
+                   help="track forwards from the initialized frame to the end, then backwards to the start")
+    p.add_argument("--fill", action="store_true", help="Interpolate Gaps after tracking")
+    p.add_argument("--fill-method", choices=("neighbours", "face_model"), default="neighbours",
+                   help="gap-filling method (default: the guide's neighbour interpolation)")
+    p.add_argument("--stabilize", action="store_true",
+                   help="Stabilize Data [Assisted] over the gap-free face points (exports use the stabilized data "
+                        "when the Export section says so)")
     p.add_argument("--out", required=True, type=Path, help="the .cara project to write")
     p.add_argument("--c3d", type=Path, help="also export a C3D")
     p.add_argument("--fbx", type=Path, help="also export an FBX")

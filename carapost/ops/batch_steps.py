@@ -178,18 +178,12 @@ def _point_frames(take: Any) -> int:
 
 
 def _track(ctx: JobContext) -> dict[str, Any]:
-    from .track import track_backwards_sequence, track_forwards_sequence
+    from .pipeline import track_both_ways
 
     take = ctx.session.take
     frame = ctx.options.frame if ctx.options.frame is not None else int(take.current_frame)
-    if not 0 <= frame < take.n_frames:
-        raise ValueError(f"frame {frame} is outside the take (0..{take.n_frames - 1})")
-    take.current_frame = frame
-    if frame < take.n_frames - 1:
-        ctx.session.apply(track_forwards_sequence(take, ctx.session.image, frame))
-    if frame > 0:
-        ctx.session.apply(track_backwards_sequence(take, ctx.session.image, frame))
-    return {"frame": frame, "point_frames": _point_frames(take)}
+    numbers = track_both_ways(ctx.session, frame)
+    return {"frame": frame, "point_frames": _point_frames(take), "coverage": numbers["coverage"]}
 
 
 def _fill(ctx: JobContext) -> dict[str, Any]:

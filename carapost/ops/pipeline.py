@@ -1,8 +1,9 @@
 """The headless pipeline: what ``carapost process``, ``carapost demo``, batch jobs and the API run.
 
 Stages, each an undoable change on the session's stack (so a script can undo any of them):
-detect blobs -> calibration brim -> seeds / brim solve -> bundle -> Initialize 3D -> (later stages
-register here as they land) -> exports. A failure raises :class:`PipelineError` naming the
+detect blobs -> calibration brim -> seeds / brim solve -> bundle -> Initialize 3D (from the seeds,
+automatically, or Initialize from ROM) -> Track Forwards then Backwards [Sequence] -> Interpolate
+Gaps -> Stabilize Data [Assisted] -> exports. A failure raises :class:`PipelineError` naming the
 stage and the cause; the stages already done stay applied.
 """
 
@@ -19,7 +20,7 @@ import numpy as np
 
 from .session import Session
 
-__all__ = ["PipelineError", "PipelineOptions", "run_pipeline"]
+__all__ = ["PipelineError", "PipelineOptions", "run_pipeline", "track_both_ways", "stabilize_all"]
 
 Report = Callable[..., None]  # report(stage, seconds, **numbers)
 
@@ -53,18 +54,32 @@ class PipelineOptions:
         Seeds file (brim dots and face markers matched across cameras, raw px).
     auto_init : bool
         Initialize 3D without seeds.
+    rom : path or None
+        A solved ROM ``.cara`` of the same actor and marker set: Load ROM, then Initialize from
+        ROM (cameras, brim, points, labels and sticks) instead of seeds / automatic init.
+    track : bool
+        Track Forwards [Sequence] then Track Backwards [Sequence] from the initialized frame.
+    fill : str or None
+        Interpolate Gaps with this method (``"neighbours"`` or ``"face_model"``).
+    stabilize : bool
+        Stabilize Data [Assisted] over the face points that are gap-free in the active range.
     c3d, fbx : path or None
         Export files written at the end.
     """
 
     def __init__(self, *, frame: int | None = None, detect: str = "frame", brim: str | None = None,
                  seeds: str | os.PathLike | None = None, auto_init: bool = False,
+                 rom: str | os.PathLike | None = None, track: bool = False, fill: str | None = None,
+                 stabilize: bool = False,
                  c3d: str | os.PathLike | None = None, fbx: str | os.PathLike | None = None) -> None:
         if detect not in ("frame", "range", "none"):
             raise ValueError(f"detect must be 'frame', 'range' or 'none', got {detect!r}")
-        if seeds is None and not auto_init:
-            raise ValueError("give a seeds file or ask for automatic initialization")
+        if sum((seeds is not None, bool(auto_init), rom is not None)) != 1:
+            raise ValueError("give exactly one of a seeds file, automatic initialization or a ROM take")
+        if fill not in (None, "neighbours", "face_model"):
+            raise ValueError(f"fill must be 'neighbours' or 'face_model', got {fill!r}")
         self.frame, self.detect, self.brim, self.seeds, self.auto_init = frame, detect, brim, seeds, auto_init
+        self.rom, self.track, self.fill, self.stabilize = rom, track, fill, stabilize
         self.c3d, self.fbx = c3d, fbx
 
 
@@ -157,15 +172,46 @@ def run_pipeline(session: Session, options: PipelineOptions, *, report: Report |
             session.apply(bundle_current_frame(take, frame))
         done("bundle seeds", t0)
 
-    # 4. Initialize 3D.
+    # 4. Initialize 3D (or from the ROM).
     t0 = time.perf_counter()
-    with stage("initialize 3D"):
-        session.apply(initialize_3d_op(take, frame, auto=options.auto_init))
-    face = take.face_points()
-    n3d = int(np.isfinite(take.xyz[frame, face]).all(-1).sum())
-    done("initialize 3D", t0, points=n3d)
+    if options.rom is not None:
+        from carapost.ops.rom import initialize_from_rom, load_rom
 
-    # 5. Exports.
+        with stage("initialize from ROM"):
+            session.apply(load_rom(take, options.rom))
+            session.apply(initialize_from_rom(take, session.image, frame))
+        face = take.face_points()
+        n3d = int(np.isfinite(take.xyz[frame, face]).all(-1).sum())
+        done("initialize from ROM", t0, points=n3d)
+    else:
+        with stage("initialize 3D"):
+            session.apply(initialize_3d_op(take, frame, auto=options.auto_init))
+        face = take.face_points()
+        n3d = int(np.isfinite(take.xyz[frame, face]).all(-1).sum())
+        done("initialize 3D", t0, points=n3d)
+
+    # 5. Tracking, gap filling, stabilization.
+    if options.track:
+        t0 = time.perf_counter()
+        with stage("track"):
+            numbers = track_both_ways(session, frame, progress=progress, cancel=cancel)
+        done("track", t0, **numbers)
+    if options.fill is not None and not _cancelled(cancel):
+        from carapost.ops.fill import interpolate_gaps
+
+        t0 = time.perf_counter()
+        with stage("interpolate gaps"):
+            change = interpolate_gaps(take, method=options.fill)
+            session.apply(change)
+        done("interpolate gaps", t0, **{k: v for k, v in change.report.items()
+                                        if k in ("filled", "single_sensor", "unfilled")})
+    if options.stabilize and not _cancelled(cancel):
+        t0 = time.perf_counter()
+        with stage("stabilize"):
+            numbers = stabilize_all(session)
+        done("stabilize", t0, **numbers)
+
+    # 6. Exports.
     for path, what in ((options.c3d, "C3D"), (options.fbx, "FBX")):
         if path is None:
             continue
@@ -178,3 +224,56 @@ def run_pipeline(session: Session, options: PipelineOptions, *, report: Report |
         done(f"export {what}", t0)
     summary["points"] = n3d
     return summary
+
+
+def _cancelled(cancel: Callable[[], bool] | None) -> bool:
+    return cancel is not None and bool(cancel())
+
+
+def _face_point_frames(take: Any) -> int:
+    return int(np.isfinite(take.xyz[:, take.face_points()]).all(-1).sum())
+
+
+def track_both_ways(session: Session, frame: int, *, progress: Callable[..., Any] = _no_progress,
+                    cancel: Callable[[], bool] | None = None) -> dict[str, Any]:
+    """Track Forwards [Sequence] then Track Backwards [Sequence] from ``frame`` (two undoable
+    entries). Returns ``frames`` tracked and ``coverage``: the fraction of face point-frames of
+    the active range with a 3D position afterwards."""
+    from carapost.ops.track import track_backwards_sequence, track_forwards_sequence
+
+    take = session.take
+    if not 0 <= frame < take.n_frames:
+        raise ValueError(f"frame {frame} is outside the take (0..{take.n_frames - 1})")
+    take.current_frame = frame
+    a, b = take.active_range
+    frames = 0
+    if frame < b and not _cancelled(cancel):
+        with progress("track forwards") as prog:
+            session.apply(track_forwards_sequence(take, session.image, frame, n_frames=b - frame,
+                                                  progress=prog, cancel=cancel))
+        frames += b - frame
+    if frame > a and not _cancelled(cancel):
+        with progress("track backwards") as prog:
+            session.apply(track_backwards_sequence(take, session.image, frame, n_frames=frame - a,
+                                                   progress=prog, cancel=cancel))
+        frames += frame - a
+    face = take.face_points()
+    cover = np.isfinite(take.xyz[a:b + 1, face]).all(-1).mean() if len(face) else 0.0
+    return {"frames": frames, "coverage": float(cover)}
+
+
+def stabilize_all(session: Session) -> dict[str, Any]:
+    """Stabilize Data [Assisted] with every face point that is gap-free in the active range as
+    a candidate (the assisted method keeps the Stable Points Percent most rigid of them)."""
+    from carapost.ops.fill import stabilize_assisted
+
+    take = session.take
+    a, b = take.active_range
+    face = take.face_points()
+    full = face[np.isfinite(take.xyz[a:b + 1, face]).all(-1).all(0)]
+    if len(full) < 3:
+        raise ValueError(f"only {len(full)} face points are gap-free in frames {a}..{b}; stabilization needs 3 "
+                         f"(fill the gaps first)")
+    change = stabilize_assisted(take, full)
+    session.apply(change)
+    return {"points": int(len(full)), **{k: v for k, v in change.report.items() if isinstance(v, (int, float))}}
