@@ -37,6 +37,7 @@ from carapost.model.take import PointKind, Recon, Take
 
 from . import c3d_binary as cb
 from .atomic import atomic_write_bytes
+from .export import unique_names
 from .c3d_binary import C3DError, ParameterSection
 
 __all__ = ["C3DError", "C3DData", "export_c3d", "read_c3d", "info_c3d", "FORMAT_VERSION",
@@ -199,7 +200,7 @@ def export_c3d(take: Take, path: str | os.PathLike, *, points: np.ndarray | list
     xyz32 = np.where(valid[..., None], xyz, 0.0).astype(np.float32)
 
     pts = take.points
-    labels = _unique_names([pts.name(int(i)).strip() or _generated_name(pts, int(i)) for i in idx])
+    labels = unique_names([pts.name(int(i)).strip() or _generated_name(pts, int(i)) for i in idx])
     kind = pts.kind[idx].astype(np.int64)
     ids = pts.ids[idx].astype(np.int64)
     brim = pts.brim_index[idx].astype(np.int64)
@@ -235,23 +236,6 @@ def export_c3d(take: Take, path: str | os.PathLike, *, points: np.ndarray | list
 def _generated_name(pts, i: int) -> str:  # a label made only of spaces
     prefix = "Brim" if pts.kind[i] == PointKind.BRIM else "Point"
     return f"{prefix}_{int(pts.ids[i])}"
-
-
-def _unique_names(names: list[str]) -> list[str]:
-    """Later repeats of a name get ``_2``, ``_3``... (the first suffix not already used)."""
-    used = set(names)
-    seen: set[str] = set()
-    out = []
-    for n in names:
-        if n in seen:
-            k = 2
-            while f"{n}_{k}" in used:
-                k += 1
-            n = f"{n}_{k}"
-            used.add(n)
-        seen.add(n)
-        out.append(n)
-    return out
 
 
 def _description(kind: int, pid: int, brim_index: int) -> str:
