@@ -32,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from carapost.io.pico import CALIBRATION_EXTENSIONS, find_calibration, take_files, take_name
 from carapost.model.params import PRESETS
 from carapost.ops.session import Session
 
@@ -40,23 +41,8 @@ from .api_steps import ProcessingSteps, _ops
 
 __all__ = ["CaraProcess", "find_calibration", "default_properties", "CALIBRATION_EXTENSIONS"]
 
-#: Calibration files looked for next to a take's ``.pico`` files, in this order.
-CALIBRATION_EXTENSIONS = (".xcp", ".toml", ".qca")
-
 ProgressFn = Callable[[int, int], None]
 CancelFn = Callable[[], bool]
-
-
-def find_calibration(pico_path: str | os.PathLike) -> Path | None:
-    """The calibration named after a take next to its files (``NAME.xcp``, ``.toml``, ``.qca``
-    for ``NAME_0.pico``), or None — the rule the GUI's "Import Pico Files" follows."""
-    p = Path(pico_path)
-    name = p.stem.rsplit("_", 1)[0] if "_" in p.stem else p.stem
-    for ext in CALIBRATION_EXTENSIONS:
-        cand = p.parent / f"{name}{ext}"
-        if cand.is_file():
-            return cand
-    return None
 
 
 def _section_info(sec: Any) -> dict[str, dict[str, Any]]:
@@ -82,13 +68,10 @@ def default_properties(*, info: bool = False) -> dict[str, dict[str, Any]]:
 
 
 def _pico_session(pico_path: str | os.PathLike, calibration: str | os.PathLike | None, find: bool) -> Session:
-    from carapost.io.pico import take_files
-
     paths = take_files(pico_path)
     if calibration is None and find:
         calibration = find_calibration(paths[0])
-    stem = paths[0].stem
-    return Session.from_sources(paths, calibration, name=stem.rsplit("_", 1)[0] if "_" in stem else stem)
+    return Session.from_sources(paths, calibration, name=take_name(paths[0]))
 
 
 class CaraProcess(ProcessingSteps):

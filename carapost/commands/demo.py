@@ -73,7 +73,7 @@ def _run(session: Any, synth: Any, files: dict, rep: _Report, out: Path, total0:
     rep.stage("detect blobs [active range]", time.perf_counter() - t0, recall=sc.recall, precision=sc.precision,
               median_err_px=sc.median_error_px)
 
-    result = run_pipeline(session, PipelineOptions(seeds=files["seeds"], brim=str(files["brim_json"])),
+    run_pipeline(session, PipelineOptions(seeds=files["seeds"], brim=str(files["brim_json"])),
                           report=rep.stage, progress=progress_bar)
     frame = take.current_frame
     if take.n_points:

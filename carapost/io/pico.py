@@ -45,6 +45,9 @@ __all__ = [
     "PicoWriter",
     "PicoReader",
     "take_files",
+    "take_name",
+    "find_calibration",
+    "CALIBRATION_EXTENSIONS",
     "channel_of",
     "update_metadata",
 ]
@@ -519,6 +522,27 @@ def channel_of(path: str | os.PathLike) -> tuple[str, int]:
     if not sep or not num.isdigit() or not prefix:
         raise ValueError(f"{p}: a .pico file name must end in _<channel number>, e.g. TAKE_0.pico")
     return prefix, int(num)
+
+
+#: Calibration files looked for next to a take's ``.pico`` files, in this order.
+CALIBRATION_EXTENSIONS = (".xcp", ".toml", ".qca")
+
+
+def take_name(path: str | os.PathLike) -> str:
+    """The take a camera file belongs to: ``NAME`` for ``NAME_0.pico`` (the stem otherwise)."""
+    stem = Path(path).stem
+    return stem.rsplit("_", 1)[0] if "_" in stem else stem
+
+
+def find_calibration(any_take_file: str | os.PathLike) -> Path | None:
+    """The calibration named after a take next to its files (``NAME.xcp``, else ``.toml``, else
+    ``.qca`` for ``NAME_0.pico``), or None. The GUI's import, the API and batch jobs use this rule."""
+    p = Path(any_take_file)
+    for ext in CALIBRATION_EXTENSIONS:
+        cand = p.parent / f"{take_name(p)}{ext}"
+        if cand.is_file():
+            return cand
+    return None
 
 
 def take_files(any_pico_path: str | os.PathLike) -> list[Path]:

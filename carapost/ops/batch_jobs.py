@@ -16,14 +16,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from carapost.io.pico import CALIBRATION_EXTENSIONS
+
 from .batch_steps import EXPORT_FORMATS, STEPS, resolve_steps
 
 __all__ = ["TakeJob", "BatchOptions", "find_takes", "CALIBRATION_EXTENSIONS", "FILL_METHODS"]
 
 log = logging.getLogger("carapost")
 
-#: Calibration files looked for next to a take's ``.pico`` files, in this order.
-CALIBRATION_EXTENSIONS = (".xcp", ".toml", ".qca")
 FILL_METHODS = ("neighbours", "face_model")
 _GLOB_CHARS = re.compile(r"[*?\[]")
 

@@ -332,19 +332,16 @@ class MainWindow(QMainWindow):
     def import_sources(self, paths: Sequence[str], calibration: str | None = None) -> None:
         """Import camera files (a single ``.pico`` stands for its whole take); a calibration named
         after the take next to the files is used if none is given."""
-        from carapost.io.pico import take_files
+        from carapost.io.pico import find_calibration, take_files, take_name
 
         paths = [str(p) for p in paths]
         if len(paths) == 1 and paths[0].lower().endswith(".pico"):
             paths = [str(q) for q in take_files(paths[0])]
         first = Path(paths[0])
-        name = first.stem.rsplit("_", 1)[0] if "_" in first.stem else first.stem
+        name = take_name(first)
         if calibration is None:
-            for ext in (".xcp", ".toml", ".qca"):
-                cand = first.parent / f"{name}{ext}"
-                if cand.exists():
-                    calibration = str(cand)
-                    break
+            found = find_calibration(first)
+            calibration = str(found) if found is not None else None
         self._remember_dir(first)
 
         def job(progress, cancel):  # type: ignore[no-untyped-def]
