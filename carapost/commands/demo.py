@@ -74,7 +74,7 @@ def _run(session: Any, synth: Any, files: dict, rep: _Report, out: Path, total0:
               median_err_px=sc.median_error_px)
 
     run_pipeline(session, PipelineOptions(seeds=files["seeds"], brim=str(files["brim_json"])),
-                          report=rep.stage, progress=progress_bar)
+                 report=rep.stage, progress=progress_bar)
     frame = take.current_frame
     if take.n_points:
         _score(rep, take, synth, [frame], "accuracy at the seeds' frame")
