@@ -155,6 +155,73 @@ class ProcessingSteps:
         f = self.current_frame if frame is None else self._frame(frame)
         return self._apply(_ops("init3d").initialize_3d_op(self.take, f, auto=auto))
 
+    # ------------------------------------------------------------------------------ calibration
+    def import_calibration(self, path: str | os.PathLike) -> str:
+        """"Import XCP": the intrinsics and poses of a calibration file (``.xcp``, ``.toml`` or
+        ``.qca``, one camera per channel) replace the take's, as one undoable step.
+
+        Raises
+        ------
+        ValueError
+            The file cannot be read or has a different number of cameras (the message names it).
+        """
+        from carapost.io.calibration import load_calibration
+
+        try:
+            calib = load_calibration(path)
+        except OSError as exc:
+            raise ValueError(f"{path}: {exc.strerror or exc}") from None
+        return self._apply(_ops("calibrate").apply_calibration(self.take, calib))
+
+    # ------------------------------------------------------------------------------ ROM
+    def load_rom(self, path: str | os.PathLike) -> str:
+        """"Load ROM": a solved ``.cara`` take of the same actor, marker set and camera rig,
+        used by :meth:`initialize_from_rom`.
+
+        Raises
+        ------
+        ValueError
+            The file is missing or not a ``.cara`` project, or the take in it has no brim, no
+            solved frame, or a different number of cameras (the message names the file).
+        """
+        rom_ops = _ops("rom")
+        rom = rom_ops.read_rom(path, n_cameras=self.take.n_cameras)
+        text = self._apply(rom_ops.load_rom(self.take, path, rom=rom))
+        self._rom, self._rom_path = rom, self.take.rom_path     # cached while the path stays
+        return text
+
+    def initialize_from_rom(self, frame: int | None = None, *, brim_only: bool = False) -> str:
+        """"Initialize from ROM" (``brim_only=True``: "Initialize from ROM [Brim Only]").
+
+        Finds the loaded ROM's points of its *ROM Frame Index* in ``frame`` (default the current
+        frame) with the tracking algorithm and the Initialize From ROM Parameters
+        (``take.params.rom``: frame index, face and brim point tracking distances, max allowed
+        3D point error), and carries over the cameras' calibration (poses re-estimated from
+        the brim), the brim, the face points (a new set), their labels and sticks, as one
+        undoable step. The frame's blobs are detected first if they have not been.
+
+        Returns
+        -------
+        str
+            The history entry: how many brim and face points were found.
+
+        Raises
+        ------
+        ValueError
+            No ROM loaded (:meth:`load_rom`), the ROM frame has no poses or brim, or the frame
+            has no detections and no video.
+        """
+        f = self.current_frame if frame is None else self._frame(frame)
+        image = self._session.image if not self.missing_sources else None
+        rom = getattr(self, "_rom", None)
+        if rom is not None and getattr(self, "_rom_path", None) != self.take.rom_path:
+            rom = None
+        change = _ops("rom").initialize_from_rom(self.take, image, f, brim_only=brim_only, rom=rom)
+        report = getattr(change, "report", {})
+        if report.get("not_found"):
+            log.info("Initialize from ROM: not found: %s", ", ".join(report["not_found"]))
+        return self._apply(change)
+
     def bundle(self, frames: Sequence[int] | int | None = None) -> str:
         """"Bundle Current Frame / Sequence [Unconstrained]": refine camera poses and
         multi-view points of one frame, a list of frames, or the active range (default)."""

@@ -3,7 +3,8 @@
 
 Either takes a ``.cara`` file and tracks from the first frame that has 3D points onwards, or
 takes a ``.pico`` file, imports all the ``.pico`` files of that take, initializes it from the
-supplied ROM take (``-rom ROM.cara``) and then tracks.
+supplied ROM take (``-rom ROM.cara``) and then tracks. With a ROM, the blobs are detected with the
+ROM's Blob Parameters (same actor, marker set and cameras).
 
 Example::
 
@@ -54,12 +55,16 @@ def open_take(args: argparse.Namespace) -> cp.CaraProcess:
     if args.rom is None:
         raise ValueError(f"{args.input}: a .pico take must be initialized from a ROM: give -rom ROM.cara")
     take = cp.CaraProcess.from_pico(args.input)
-    if not hasattr(take, "initialize_from_rom"):
+    try:
+        print(take.load_rom(args.rom))
+        # Same actor, markers and rig: detect the blobs as they were detected in the ROM.
+        with cp.CaraProcess.open(args.rom) as rom:
+            for name, value in rom.properties("Blob Parameters").items():
+                take.set_property("Blob Parameters", name, value)
+        print(take.initialize_from_rom(take.active_range[0]))
+    except ValueError:
         take.close()
-        raise ValueError("Initialize from ROM is not available in this version of CaraPost yet; "
-                         "initialize the take (e.g. with seeds) and track the .cara instead")
-    print(take.load_rom(args.rom))
-    print(take.initialize_from_rom())
+        raise
     return take
 
 

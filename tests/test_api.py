@@ -430,3 +430,22 @@ def test_help_documents_the_api():
     assert "sensors" in text and "start_frame" in text and "Returns" in text
     for attr in ("track", "initialize_3d", "interpolate_gaps", "solve_brim"):          # inherited steps
         assert getattr(cp.CaraProcess, attr).__doc__
+
+
+def test_process_import_calibration(demo, tmp_path):
+    from carapost.io.calibration import load_calibration
+
+    shutil.copy(demo / "Example.cara", tmp_path / "Example.cara")
+    xcp = next(demo.glob("*.xcp"))
+    with cp.CaraProcess(tmp_path / "Example.cara") as take:
+        R0 = take.take.R.copy()
+        take.take.R[:] = np.nan                        # as if the take had been imported uncalibrated
+        text = take.import_calibration(xcp)
+        assert text.startswith("Import XCP")
+        R, _ = load_calibration(xcp).poses(take.n_frames)
+        np.testing.assert_allclose(take.take.R, R)
+        take.undo()
+        assert np.isnan(take.take.R).all()
+        with pytest.raises(ValueError, match="missing.xcp"):
+            take.import_calibration(tmp_path / "missing.xcp")
+        take.take.R[:] = R0

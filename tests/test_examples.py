@@ -149,6 +149,27 @@ def test_process_track(demo, tmp_path, capsys):
     assert code == 1 and "no frame has 3D points" in err
 
 
+def test_process_track_with_rom(demo, tmp_path, capsys):
+    # The demo's .pico files as a new take, initialized from the solved demo take as the ROM.
+    pico = copy_take(demo, tmp_path, "New")
+    proc = run("process_track.py", pico, "-rom", demo / "Example.cara")
+    assert "Load ROM Example.cara" in proc.stdout
+    assert "Initialize from ROM: 18 of 18 brim points" in proc.stdout and "Track Forwards [Sequence]" in proc.stdout
+    rom, new = cp.CaraExport(demo / "Example.cara"), cp.CaraExport(tmp_path / "New.cara")
+    rf, nf = rom.face_points, new.face_points
+    assert len(nf) == len(rf) and len(new.brim_points) == 18
+    assert [new.take.points.labels[i] for i in nf] == [rom.take.points.labels[i] for i in rf]
+    assert new.take.rom_path == str(demo / "Example.cara")
+    # Same images: every face point found in frame 0 where the ROM has it, then tracked.
+    np.testing.assert_allclose(new.xyz[0, nf], rom.xyz[0, rf], atol=0.05)
+    assert np.isfinite(new.xyz[1:, nf]).all(-1).any()
+    # A missing or unusable ROM is one line naming the file.
+    code, _, err = call(capsys, "process_track.py", pico, "-rom", tmp_path / "nothing.cara")
+    assert code == 1 and "nothing.cara" in err
+    code, _, err = call(capsys, "process_track.py", pico, "-rom", demo / "Example_b.cara")
+    assert code == 1 and "Example_b.cara" in err and "brim" in err
+
+
 def test_process_batch_detect_blobs(demo, tmp_path, capsys):
     root = tmp_path / "jobs"
     copy_take(demo, root)

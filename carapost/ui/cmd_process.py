@@ -11,7 +11,6 @@ import numpy as np
 
 from carapost.model.take import PointKind, Take
 
-from . import adapters
 from .adapters import ops
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -21,22 +20,57 @@ log = logging.getLogger("carapost")
 
 
 def load_rom(w: "MainWindow") -> None:
-    """Load ROM: read a solved ``.cara`` take (shown by the views' ROM option)."""
-    from carapost.io.cara import load_take
-
+    """Load ROM: read and check a solved ``.cara`` take (shown by the views' ROM option)."""
     path = w.prompts.open_file("Load ROM", "CaraPost projects (*.cara)", w.last_dir())
     if not path:
         return
+    take = w.doc.take
 
     def job(progress, cancel):  # type: ignore[no-untyped-def]
-        return load_take(path).take
+        rom_ops = ops("rom")
+        rom = rom_ops.read_rom(path, n_cameras=take.n_cameras)
+        return rom, rom_ops.load_rom(take, path, rom=rom)
 
-    def done(rom, cancelled):  # type: ignore[no-untyped-def]
+    def done(result, cancelled):  # type: ignore[no-untyped-def]
+        rom, change = result
         w.doc.rom = rom
-        w.apply(adapters.set_rom_path(w.doc.take, path), force=True)
+        w.apply(change, force=True)
         log.info("ROM %s: %d points, %d frames", path, rom.n_points, rom.n_frames)
 
     w.run_job("Load ROM", job, done)
+
+
+def _initialize_from_rom(w: "MainWindow", brim_only: bool) -> None:
+    """Initialize from ROM [Brim Only] in the current frame, in a worker; logs what was found."""
+    doc = w.doc
+    take, frame, session = doc.take, doc.frame, doc.session
+    title = "Initialize from ROM [Brim Only]" if brim_only else "Initialize from ROM"
+    if not take.rom_path:            # never loaded, or Load ROM undone
+        raise ValueError(f"{title}: no ROM take has been loaded: use Process > Load ROM first")
+    rom = doc.rom                    # None (e.g. a reopened project): read from take.rom_path
+    image = session.image if session is not None and not session.missing else None
+
+    def job(progress, cancel):  # type: ignore[no-untyped-def]
+        return ops("rom").initialize_from_rom(take, image, frame, brim_only=brim_only, rom=rom)
+
+    def done(change, cancelled):  # type: ignore[no-untyped-def]
+        if w.apply(change, force=True):
+            report = getattr(change, "report", {})
+            log.info("%s", change.text)
+            if report.get("not_found"):
+                log.warning("%s: not found: %s", title, ", ".join(report["not_found"]))
+
+    w.run_job(title, job, done)
+
+
+def initialize_from_rom(w: "MainWindow") -> None:
+    """Initialize from ROM: brim and face points of the ROM frame in the current frame."""
+    _initialize_from_rom(w, False)
+
+
+def initialize_from_rom_brim_only(w: "MainWindow") -> None:
+    """Initialize from ROM [Brim Only]: the calibration and the brim."""
+    _initialize_from_rom(w, True)
 
 
 def _default_brim(w: "MainWindow", version: str) -> None:

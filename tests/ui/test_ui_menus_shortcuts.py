@@ -128,11 +128,13 @@ def test_go_to_frame_dialog(loaded):
     assert loaded.doc.frame == 2
 
 
-def test_missing_entry_logs_reason(loaded):
+def test_failing_entry_logs_reason(loaded):
+    # the guide: "Initialize from ROM fails completely if no ROM take has been loaded. This
+    # generates an error message in the Log pane."
     rows = []
     loaded.log_handler.emitter.record.connect(rows.append)
     loaded.actions["process.init_rom"].trigger()
-    assert rows and rows[-1][1] == "Error" and re.search("not available yet", rows[-1][3])
+    assert rows and rows[-1][1] == "Error" and re.search("no ROM take has been loaded", rows[-1][3])
 
 
 def test_shortcut_shows_in_properties(window):

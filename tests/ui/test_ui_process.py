@@ -178,7 +178,7 @@ def test_initialize_3d_grows_from_seeds(qtbot, loaded, tiny_files):
 
 
 @pytest.mark.parametrize("key", ["process.init_rom", "process.init_rom_brim"])
-def test_unwritten_operations_report_instead_of_failing(loaded, key):
+def test_initialize_from_rom_without_rom_reports_instead_of_failing(loaded, key):
     n = loaded.doc.undo.count()
     loaded.actions[key].trigger()
     assert loaded.last_action == key and loaded.doc.undo.count() == n
