@@ -136,3 +136,29 @@ def test_process_rom_excludes_seeds(capsys, take, tmp_path):
         main(["process", "--cameras", *picos(files), "--calibration", str(files["xcp"]), "--seeds",
               str(files["seeds"]), "--rom", str(tmp_path / "rom.cara"), "--out", str(tmp_path / "x.cara")])
     assert exc.value.code == 2 and "not allowed with" in capsys.readouterr().err
+
+
+def test_process_initializes_from_a_rom_take(capsys, take, moving_take, tmp_path):
+    """A ROM processed from its seeds initializes another take of the same actor (other seed:
+    other expression and helmet position), which is then tracked."""
+    _, rom_files = take
+    synth, files = moving_take
+    rom = tmp_path / "rom.cara"
+    assert main(["process", "--cameras", *picos(rom_files), "--calibration", str(rom_files["xcp"]), "--brim",
+                 str(rom_files["brim_json"]), "--seeds", str(rom_files["seeds"]), "--out", str(rom),
+                 "--no-progress"]) == 0
+    out = tmp_path / "shot.cara"
+    code = main(["process", "--cameras", *picos(files), "--calibration", str(files["xcp"]), "--rom", str(rom),
+                 "--track", "--out", str(out), "--no-progress", "--json"])
+    text, err = capsys.readouterr()
+    assert code == 0, err
+    stages = {s["stage"]: s for s in json.loads(text.strip().splitlines()[-1])["stages"]}
+
+    from carapost.io.cara import load_take
+    from carapost.synth.evaluate import score_points
+
+    rom_points = load_take(rom).take.face_points().size
+    assert stages["initialize from ROM"]["points"] >= 0.9 * rom_points
+    t = load_take(out).take
+    ps = score_points(t, synth.truth)
+    assert ps.swaps == 0 and ps.mismatched_observations == 0 and ps.median_error_mm < 0.2
