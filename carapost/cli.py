@@ -120,6 +120,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 130
     if args.json:
         print(json.dumps(summary, default=str))
+    if isinstance(summary, dict) and summary.get("cancelled"):
+        return 130  # the conventional status of a run stopped by Ctrl+C (what was done is saved)
     return 0
 
 

@@ -124,3 +124,52 @@ def test_label_command_repairs_a_swap(capsys, tmp_path):
     back = read_marker_csv(tmp_path / "out.csv")
     order = [back.names.index(n) for n in names]
     np.testing.assert_allclose(back.xyz[:, order], xyz, atol=1e-3)
+
+
+def test_ctrl_c_cancels_then_interrupts(capsys):
+    import os
+    import signal
+
+    from carapost.commands.common import interrupt_cancels
+
+    with interrupt_cancels("test") as cancel:
+        assert not cancel()
+        os.kill(os.getpid(), signal.SIGINT)
+        assert cancel()                                  # the first Ctrl+C asks the operation to stop
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)          # the second one aborts
+    assert "stopping after the current frame" in capsys.readouterr().err
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+
+
+def test_process_ctrl_c_keeps_and_saves_the_finished_frames(capsys, tmp_path, monkeypatch):
+    import os
+    import signal
+
+    import numpy as np
+
+    from carapost.io.cara import load_take
+    from carapost.ops import track as track_ops
+    from carapost.synth import SynthConfig, generate_take, write_take
+
+    files = write_take(generate_take(SynthConfig(n_markers=35, n_frames=6, seed=2)), tmp_path, "C")
+    real = track_ops.track
+
+    def interrupted_track(take, start, **kw):
+        progress = kw["progress"]
+
+        def on_frame(done, total):
+            progress(done, total)
+            if done == 2:
+                os.kill(os.getpid(), signal.SIGINT)       # the user presses Ctrl+C during tracking
+        return real(take, start, **{**kw, "progress": on_frame})
+
+    monkeypatch.setattr(track_ops, "track", interrupted_track)
+    out = tmp_path / "c.cara"
+    code = main(["process", "--cameras", *[str(files[f"pico_{c}"]) for c in range(4)], "--calibration",
+                 str(files["xcp"]), "--brim", str(files["brim_json"]), "--seeds", str(files["seeds"]), "--track",
+                 "--out", str(out), "--no-progress"])
+    assert code == 130 and "cancelled" in capsys.readouterr().out
+    take = load_take(out).take
+    tracked = np.isfinite(take.xyz[:, take.face_points()]).all(-1).any(-1)
+    assert tracked[:3].all() and not tracked[4:].any()   # frames 0-2 kept (and saved), the rest not tracked

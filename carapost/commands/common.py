@@ -2,12 +2,40 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from pathlib import Path
+import signal
+import sys
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 
 from carapost.ops.session import Session
 
-__all__ = ["open_session", "parse_frames", "parse_cameras"]
+__all__ = ["open_session", "parse_frames", "parse_cameras", "interrupt_cancels"]
+
+
+@contextmanager
+def interrupt_cancels(what: str) -> Iterator[Callable[[], bool]]:
+    """Within the block, the first Ctrl+C asks the running operation to stop (it keeps the frames
+    it finished, and the command saves them); a second one interrupts at once.
+
+    Yields the ``cancel()`` callable the operations poll."""
+    if threading.current_thread() is not threading.main_thread():
+        yield lambda: False
+        return
+    asked = threading.Event()
+
+    def handler(signum, frame):  # type: ignore[no-untyped-def]
+        if asked.is_set():
+            raise KeyboardInterrupt
+        asked.set()
+        print(f"\n{what}: stopping after the current frame (Ctrl+C again to abort without saving)",
+              file=sys.stderr)
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield asked.is_set
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def open_session(inputs: Sequence[str], calibration: str | None = None) -> Session:
@@ -19,13 +47,15 @@ def open_session(inputs: Sequence[str], calibration: str | None = None) -> Sessi
         raise ValueError("no input given")
     if len(inputs) == 1 and inputs[0].lower().endswith(".cara"):
         return Session.open(inputs[0])
+    from carapost.io.pico import find_calibration, take_files, take_name
+
     paths = list(inputs)
     if len(paths) == 1 and paths[0].lower().endswith(".pico"):
-        from carapost.io.pico import take_files
-
         paths = [str(p) for p in take_files(paths[0])]
-    name = Path(paths[0]).stem.rsplit("_", 1)[0]
-    return Session.from_sources(paths, calibration, name=name)
+        if calibration is None:
+            found = find_calibration(paths[0])
+            calibration = str(found) if found is not None else None
+    return Session.from_sources(paths, calibration, name=take_name(paths[0]))
 
 
 def parse_frames(spec: str | None, n_frames: int) -> list[int]:

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from .common import interrupt_cancels
 from .progress import progress_bar
 
 __all__ = ["cmd_process", "add_parsers"]
@@ -36,7 +37,9 @@ def cmd_process(args: argparse.Namespace) -> dict[str, Any]:
                                auto_init=args.auto_init, rom=args.rom, track=args.track,
                                fill=args.fill_method if args.fill else None, stabilize=args.stabilize,
                                c3d=args.c3d, fbx=args.fbx)
-        summary = run_pipeline(session, opts, report=report, progress=progress_bar)
+        with interrupt_cancels("carapost process") as cancel:
+            summary = run_pipeline(session, opts, report=report, progress=progress_bar, cancel=cancel)
+            summary["cancelled"] = cancel()
         for m in summary.get("seed_messages", []) + summary.get("brim_messages", []):
             print(f"  note: {m}")
         try:
@@ -49,6 +52,8 @@ def cmd_process(args: argparse.Namespace) -> dict[str, Any]:
     what = f"{summary['points']} points initialized"
     if tracked is not None:
         what += f", {100 * tracked['coverage']:.1f}% of face point-frames tracked"
+    if summary["cancelled"]:
+        what += " (cancelled: the frames finished before Ctrl+C are saved)"
     print(f"carapost process: {what}; wrote {', '.join(summary['files'])} "
           f"in {summary['seconds']:.1f} s")
     return summary
