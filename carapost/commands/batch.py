@@ -8,6 +8,8 @@ import sys
 import time
 from typing import Any
 
+from carapost.model.params import FILL_METHODS
+
 from .progress import progress_bar
 
 __all__ = ["cmd_batch", "add_parsers"]
@@ -99,7 +101,7 @@ def add_parsers(sub: Any) -> dict[str, Any]:
     p.add_argument("--auto-init", action="store_true", help="init: initialize 3D without a seeds file")
     p.add_argument("--frame", type=int, help="init/track: the frame to initialize and track from")
     p.add_argument("--formats", default="c3d", help="export: comma-separated formats among c3d,fbx (default c3d)")
-    p.add_argument("--fill-method", choices=("neighbours", "face_model"), default="neighbours",
+    p.add_argument("--fill-method", choices=FILL_METHODS, default="neighbours",
                    help="fill: gap-filling method")
     p.add_argument("--force", action="store_true",
                    help="redo up-to-date takes and overwrite .cara files that batch did not write")

@@ -8,6 +8,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from carapost.model.params import FILL_METHODS
+
 from .common import interrupt_cancels
 from .progress import progress_bar
 
@@ -76,7 +78,7 @@ def add_parsers(sub: Any) -> dict[str, Any]:
     p.add_argument("--track", action="store_true",
                    help="track forwards from the initialized frame to the end, then backwards to the start")
     p.add_argument("--fill", action="store_true", help="Interpolate Gaps after tracking")
-    p.add_argument("--fill-method", choices=("neighbours", "face_model"), default="neighbours",
+    p.add_argument("--fill-method", choices=FILL_METHODS, default="neighbours",
                    help="gap-filling method (default: the guide's neighbour interpolation)")
     p.add_argument("--stabilize", action="store_true",
                    help="Stabilize Data [Assisted] over the gap-free face points (exports use the stabilized data "

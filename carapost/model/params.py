@@ -21,6 +21,7 @@ __all__ = [
     "RomParameters",
     "TrackingParameters",
     "GapFillingParameters",
+    "FILL_METHODS",
     "StabilizationParameters",
     "ExportParameters",
     "ShowAgainFlags",
@@ -213,6 +214,11 @@ class TrackingParameters(ParamSection):
     allow_single_sensor_tracking: bool = p(True, "Allow Single Sensor Tracking")
     single_sensor_tracking_threshold: float = p(0.5, "Single Sensor Tracking Threshold", unit="mm", lo=0, hi=1000)
     blob_size_difference_threshold: float = p(0.75, "Blob Size Difference Threshold", lo=0.0, hi=1.0)
+
+
+#: Interpolate Gaps methods: the guide's neighbour interpolation, seed 001's face model, and the
+#: neighbour method with eyelid blink pulses (``docs/gap-filling.md``).
+FILL_METHODS = ("neighbours", "face_model", "blink")
 
 
 @dataclass

@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from carapost.io.pico import CALIBRATION_EXTENSIONS
+from carapost.model.params import FILL_METHODS
 
 from .batch_steps import EXPORT_FORMATS, STEPS, resolve_steps
 
@@ -24,7 +25,6 @@ __all__ = ["TakeJob", "BatchOptions", "find_takes", "CALIBRATION_EXTENSIONS", "F
 
 log = logging.getLogger("carapost")
 
-FILL_METHODS = ("neighbours", "face_model")
 _GLOB_CHARS = re.compile(r"[*?\[]")
 
 
@@ -78,7 +78,7 @@ class BatchOptions:
         Frame to initialize / track from (default: the seeds' frame, else 0).
     formats : tuple of str
         Export formats of the ``export`` step: ``"c3d"``, ``"fbx"``.
-    fill_method : {"neighbours", "face_model"}
+    fill_method : {"neighbours", "face_model", "blink"}
     force : bool
         Run even up-to-date takes and overwrite ``.cara`` files batch did not write.
     threads : int

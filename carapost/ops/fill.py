@@ -7,7 +7,9 @@
 * :func:`align_data` — "Align Data" (a three-point coordinate frame);
 * :func:`evaluate_fill` — the error of a gap-filling method, measured by hiding known samples
   and filling them again (no change to the take);
-* :func:`face_model_for` — a face model learnt from the take or from a ROM take.
+* :func:`face_model_for` — a face model learnt from the take or from a ROM take;
+* :func:`blink_depths_for` — how far each marker closes in a blink, from a ROM take (for
+  ``method="blink"``, :mod:`carapost.core.gapfill_blink`).
 
 "Remove Interpolated 3D Points" is :func:`carapost.ops.points.remove_interpolated`.
 
@@ -28,10 +30,11 @@ from carapost.core.align import apply_frame, frame_from_points
 from carapost.core.camera import backproject
 from carapost.core.face_model import FaceModel, build_face_model, face_model_fill
 from carapost.core.gapfill import constrain_to_rays, fill_gaps, hide_runs
+from carapost.core.gapfill_blink import excursion_depths, fill_blink_gaps
 from carapost.core.stabilize import StabilizeResult
 from carapost.core.stabilize import stabilize_assisted as _assisted
 from carapost.core.stabilize import stabilize_manual as _manual
-from carapost.model.params import GapFillingParameters, StabilizationParameters
+from carapost.model.params import FILL_METHODS, GapFillingParameters, StabilizationParameters
 from carapost.model.take import BrimModel, PointKind, Recon, Take
 
 from .change import ArrayPatch, AttributeChange, Change, Composite
@@ -42,6 +45,7 @@ __all__ = [
     "interpolate_gaps",
     "evaluate_fill",
     "face_model_for",
+    "blink_depths_for",
     "stabilize_manual",
     "stabilize_assisted",
     "align_data",
@@ -49,7 +53,7 @@ __all__ = [
 ]
 
 #: Gap-filling methods of :func:`interpolate_gaps`.
-METHODS = ("neighbours", "face_model")
+METHODS = FILL_METHODS
 
 
 @dataclass
@@ -157,7 +161,7 @@ def _single_rays(take: Take, frames: np.ndarray, mask: np.ndarray) -> tuple[np.n
 
 def _fill_arrays(take: Take, frames: np.ndarray, fill: np.ndarray, known: np.ndarray, method: str,
                  params: GapFillingParameters, model: FaceModel | None, n_neighbours: int,
-                 momentum_s: float) -> tuple[np.ndarray, np.ndarray]:
+                 momentum_s: float, blink_depths: dict[int, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
     """New positions (F', P, 3) and the filled mask for the samples in ``fill``."""
     if method not in METHODS:
         raise ValueError(f"unknown gap-filling method {method!r}; use one of {', '.join(METHODS)}")
@@ -177,6 +181,9 @@ def _fill_arrays(take: Take, frames: np.ndarray, fill: np.ndarray, known: np.nda
     if remaining.any():
         res = fill_gaps(xyz, remaining, known=known & ~fill, forwards=fw, backwards=bw, n_neighbours=n_neighbours,
                         velocity_frames=velocity_frames)
+        if method == "blink":
+            res, _ = fill_blink_gaps(xyz, remaining, frame_rate=take.frame_rate, known=known & ~fill, base=res,
+                                     n_neighbours=n_neighbours, depths=blink_depths)
         out[res.filled] = res.xyz[res.filled]
         filled |= res.filled
     return out, filled
@@ -185,18 +192,22 @@ def _fill_arrays(take: Take, frames: np.ndarray, fill: np.ndarray, known: np.nda
 # ----------------------------------------------------------------------------- gap filling
 def interpolate_gaps(take: Take, points: Sequence[int] | None = None, *, method: str = "neighbours",
                      params: GapFillingParameters | None = None, face_model: FaceModel | None = None,
-                     n_neighbours: int = 8, momentum_s: float = 0.0) -> ReportedChange:
+                     n_neighbours: int = 8, momentum_s: float = 0.0, rom: Take | None = None,
+                     blink_depths: dict[int, float] | None = None) -> ReportedChange:
     """"Interpolate Gaps": fill the gaps of the selected points (all if none) in the active range.
 
     Parameters
     ----------
     take : Take
     points : point columns, optional
-    method : {"neighbours", "face_model"}
+    method : {"neighbours", "face_model", "blink"}
         ``"neighbours"``: the guide's neighbour-driven forward/backward prediction
         (:func:`carapost.core.gapfill.fill_gaps`). ``"face_model"``: the learned face model
         (``face_model``, or one learnt from the active range's complete frames), with the
-        neighbour method for the samples the model does not cover.
+        neighbour method for the samples the model does not cover. ``"blink"``: the neighbour
+        method, and for gaps a marker enters and leaves displaced from its neighbourhood (an
+        eyelid in a blink) a fitted closing-and-reopening pulse
+        (:func:`carapost.core.gapfill_blink.fill_blink_gaps`).
     params : GapFillingParameters, optional
         Default ``take.params.gapfill``: Overwrite Existing Filled Gaps (positions with fewer
         than two views behind them are recomputed), Use Forwards / Backwards Prediction,
@@ -209,6 +220,12 @@ def interpolate_gaps(take: Take, points: Sequence[int] | None = None, *, method:
     momentum_s : float
         Time constant (seconds) of the continuation of a point's own motion into the gap
         (0: the guide's algorithm; see ``docs/gap-filling.md``).
+    rom : Take, optional
+        For ``method="blink"``: a range-of-motion take of the same actor and markers, from which
+        each marker's blink depth is measured (:func:`blink_depths_for`).
+    blink_depths : dict {point column: mm}, optional
+        For ``method="blink"``: known depths instead (overrides ``rom``). Without either the
+        depth is fitted from the take, which determines it only loosely.
 
     Returns
     -------
@@ -238,7 +255,10 @@ def interpolate_gaps(take: Take, points: Sequence[int] | None = None, *, method:
     if not fill.any():
         return ReportedChange([], f"{text}: no gaps", report={"filled": 0, "single_sensor": 0, "unfilled": 0,
                                                                "method": method})
-    new, filled = _fill_arrays(take, frames, fill, known, method, params, face_model, n_neighbours, momentum_s)
+    if method == "blink" and blink_depths is None and rom is not None:
+        blink_depths = blink_depths_for(take, rom)
+    new, filled = _fill_arrays(take, frames, fill, known, method, params, face_model, n_neighbours, momentum_s,
+                               blink_depths)
     recon = take.recon[frames].copy()
     on_ray = np.zeros_like(filled)
     if params.allow_single_sensor_tracking_gap_filling and take.n_cameras:
@@ -259,6 +279,50 @@ def interpolate_gaps(take: Take, points: Sequence[int] | None = None, *, method:
     changes: list[Change] = [ArrayPatch.capture(take, "xyz", idx, new[sub]),
                              ArrayPatch.capture(take, "recon", idx, recon[sub])]
     return ReportedChange(changes, f"{text}: {n_filled} filled", report=report)
+
+
+def _rom_pairs(take: Take, rom: Take, cols: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """Columns of ``take`` and the matching columns of ``rom`` (by label; by column when
+    neither take is labelled and both have as many points)."""
+    labels = take.points.labels
+    rom_index = {lab: i for i, lab in enumerate(rom.points.labels) if lab}
+    pairs = [(j, rom_index[lab]) for j, lab in enumerate(labels) if lab and lab in rom_index]
+    if not pairs and rom.n_points == take.n_points:
+        pairs = [(j, j) for j in range(take.n_points)]
+    if cols is not None:
+        pairs = [(j, r) for j, r in pairs if j in set(cols.tolist())]
+    if len(pairs) < 3:
+        raise ValueError(f"the ROM take {rom.name!r} shares fewer than 3 labelled points with the take")
+    return np.array([j for j, _ in pairs], np.int64), np.array([r for _, r in pairs], np.int64)
+
+
+def blink_depths_for(take: Take, rom: Take, points: Sequence[int] | None = None) -> dict[int, float]:
+    """Each marker's full excursion from its neighbourhood (an eyelid's blink depth), mm,
+    measured on a range-of-motion take (:func:`carapost.core.gapfill_blink.excursion_depths`).
+
+    Parameters
+    ----------
+    take : Take
+    rom : Take
+        Same actor and marker set; points matched by label.
+    points : point columns of ``take``, optional
+        Default all matched points.
+
+    Returns
+    -------
+    dict {column of take: depth mm}
+        Markers seen in fewer than 10 ROM frames are left out.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 3 points in common.
+    """
+    cols = None if points is None else _columns(take, points)
+    tk_cols, rom_cols = _rom_pairs(take, rom, cols)
+    # the whole ROM is the neighbourhood: every matched point's depth against all of them
+    depth = excursion_depths(rom.xyz, rom_cols)
+    return {int(j): float(d) for j, d in zip(tk_cols, depth) if np.isfinite(d)}
 
 
 def face_model_for(take: Take, *, rom: Take | None = None, points: Sequence[int] | None = None,
@@ -292,17 +356,7 @@ def face_model_for(take: Take, *, rom: Take | None = None, points: Sequence[int]
     if rom is None:
         frames = _range(take)
         return build_face_model(take.xyz[frames], points=cols, **options)
-    labels = take.points.labels
-    rom_index = {lab: i for i, lab in enumerate(rom.points.labels) if lab}
-    pairs = [(j, rom_index[lab]) for j, lab in enumerate(labels) if lab and lab in rom_index]
-    if not pairs and rom.n_points == take.n_points:
-        pairs = [(j, j) for j in range(take.n_points)]
-    if cols is not None:
-        pairs = [(j, r) for j, r in pairs if j in set(cols.tolist())]
-    if len(pairs) < 3:
-        raise ValueError(f"the ROM take {rom.name!r} shares fewer than 3 labelled points with the take")
-    tk_cols = np.array([j for j, _ in pairs], np.int64)
-    rom_cols = np.array([r for _, r in pairs], np.int64)
+    tk_cols, rom_cols = _rom_pairs(take, rom, cols)
     model = build_face_model(rom.xyz[:, rom_cols], **options)
     model.points = tk_cols[model.points]
     return model
@@ -312,14 +366,15 @@ def evaluate_fill(take: Take, method: str = "neighbours", *, hide_fraction: floa
                   max_len: int = 30, seed: int = 0, hide: np.ndarray | None = None,
                   points: Sequence[int] | None = None, params: GapFillingParameters | None = None,
                   face_model: FaceModel | None = None, n_neighbours: int = 8,
-                  momentum_s: float = 0.0) -> FillEvaluation:
+                  momentum_s: float = 0.0, rom: Take | None = None,
+                  blink_depths: dict[int, float] | None = None) -> FillEvaluation:
     """Measure a gap-filling method: hide known samples, fill them, compare.
 
     Parameters
     ----------
     take : Take
         Not modified.
-    method : {"neighbours", "face_model"}
+    method : {"neighbours", "face_model", "blink"}
     hide_fraction, min_len, max_len, seed
         Gap-like runs to hide (:func:`carapost.core.gapfill.hide_runs`): ``hide_fraction`` of
         the known samples of the selected points in the active range, in runs of
@@ -329,7 +384,7 @@ def evaluate_fill(take: Take, method: str = "neighbours", *, hide_fraction: floa
         of the eyelid markers; they must be known samples.
     points : point columns, optional
         Points whose samples may be hidden (default all).
-    params, face_model, n_neighbours, momentum_s
+    params, face_model, n_neighbours, momentum_s, rom, blink_depths
         As for :func:`interpolate_gaps`. A face model is learnt *after* hiding (so the hidden
         samples do not inform it) unless one is given.
 
@@ -353,7 +408,10 @@ def evaluate_fill(take: Take, method: str = "neighbours", *, hide_fraction: floa
         if (hidden & ~finite).any():
             raise ValueError("hide mask covers samples that have no position")
     known = finite & ~hidden
-    new, filled = _fill_arrays(take, frames, hidden, known, method, params, face_model, n_neighbours, momentum_s)
+    if method == "blink" and blink_depths is None and rom is not None:
+        blink_depths = blink_depths_for(take, rom)
+    new, filled = _fill_arrays(take, frames, hidden, known, method, params, face_model, n_neighbours, momentum_s,
+                               blink_depths)
     err = np.linalg.norm(new[hidden] - xyz[hidden], axis=-1)
     err[~filled[hidden]] = np.nan
     return FillEvaluation(method, hidden, err)

@@ -60,7 +60,8 @@ class PipelineOptions:
     track : bool
         Track Forwards [Sequence] then Track Backwards [Sequence] from the initialized frame.
     fill : str or None
-        Interpolate Gaps with this method (``"neighbours"`` or ``"face_model"``).
+        Interpolate Gaps with this method (``"neighbours"``, ``"face_model"`` or ``"blink"``;
+        with a ROM take, the blink method takes the eyelids' closing depth from it).
     stabilize : bool
         Stabilize Data [Assisted] over the face points that are gap-free in the active range.
     c3d, fbx : path or None
@@ -76,8 +77,10 @@ class PipelineOptions:
             raise ValueError(f"detect must be 'frame', 'range' or 'none', got {detect!r}")
         if sum((seeds is not None, bool(auto_init), rom is not None)) != 1:
             raise ValueError("give exactly one of a seeds file, automatic initialization or a ROM take")
-        if fill not in (None, "neighbours", "face_model"):
-            raise ValueError(f"fill must be 'neighbours' or 'face_model', got {fill!r}")
+        from carapost.model.params import FILL_METHODS
+
+        if fill is not None and fill not in FILL_METHODS:
+            raise ValueError(f"fill must be one of {', '.join(FILL_METHODS)}, got {fill!r}")
         self.frame, self.detect, self.brim, self.seeds, self.auto_init = frame, detect, brim, seeds, auto_init
         self.rom, self.track, self.fill, self.stabilize = rom, track, fill, stabilize
         self.c3d, self.fbx = c3d, fbx
@@ -197,11 +200,18 @@ def run_pipeline(session: Session, options: PipelineOptions, *, report: Report |
             numbers = track_both_ways(session, frame, progress=progress, cancel=cancel)
         done("track", t0, **numbers)
     if options.fill is not None and not _cancelled(cancel):
-        from carapost.ops.fill import interpolate_gaps
+        from carapost.ops.fill import face_model_for, interpolate_gaps
 
         t0 = time.perf_counter()
         with stage("interpolate gaps"):
-            change = interpolate_gaps(take, method=options.fill)
+            rom = model = None
+            if options.rom is not None and options.fill in ("blink", "face_model"):
+                from carapost.ops.rom import read_rom
+
+                rom = read_rom(options.rom, n_cameras=take.n_cameras)   # eyelid depths / the face model
+                if options.fill == "face_model":
+                    model = face_model_for(take, rom=rom)
+            change = interpolate_gaps(take, method=options.fill, rom=rom, face_model=model)
             session.apply(change)
         done("interpolate gaps", t0, **{k: v for k, v in change.report.items()
                                         if k in ("filled", "single_sensor", "unfilled")})

@@ -197,6 +197,66 @@ def test_face_model_from_rom_matches_by_label(sing):
 
 
 # ----------------------------------------------------------------------------- stabilization
+@pytest.fixture(scope="module")
+def blink_takes():
+    """A synthetic take with blinks (35 markers, 200 frames at 60 fps, two blinks) made from
+    its ground truth, and a ROM take of the same markers (another seed's truth, lids closing
+    fully in view)."""
+    from carapost.synth import SynthConfig, generate_take
+
+    cfg = SynthConfig(n_markers=35, n_frames=200, blinks=True, high_motion=True)
+    tr = generate_take(cfg, seed=4).truth
+    rom_tr = generate_take(cfg, seed=7).truth
+    rom = Take.new([], rom_tr.n_frames, rom_tr.frame_rate)
+    rom.add_points(len(rom_tr.names), labels=list(rom_tr.names))
+    rom.xyz[...] = rom_tr.xyz
+    return tr, rom
+
+
+def test_blink_method_fills_eyelid_gaps(blink_takes, undo_check):
+    from carapost.core.gapfill import gap_runs
+    from carapost.ops.fill import blink_depths_for
+
+    tr, rom = blink_takes
+    session = Session(take_from_truth(tr))
+    take = session.take
+    gap = ~np.isfinite(take.xyz).all(-1)
+    depths = blink_depths_for(take, rom)
+    for m in tr.eyelid_indices:
+        assert depths[int(m)] == pytest.approx(7.5, abs=0.2)      # the synthetic lid closes 7.5 mm
+    M = len(tr.names)                                                  # the face markers (then 4 brim points)
+    medians = {}
+    methods = {"neighbours": {}, "blink": {"method": "blink"}, "blink_rom": {"method": "blink", "rom": rom}}
+    for name, kw in methods.items():
+        ch = interpolate_gaps(take, **kw)
+        if name == "blink_rom":
+            assert ch.report["method"] == "blink" and ch.report["unfilled"] == 0
+            _, after = undo_check(session, ch)
+            new = after.xyz
+            assert (after.recon[gap] != Recon.MULTI_VIEW).all()
+            session.stack.undo()
+        else:
+            ch.redo(take)
+            new = take.xyz.copy()
+            ch.undo(take)
+        err = np.linalg.norm(new[:, :M] - tr.xyz, axis=-1)
+        medians[name] = []
+        for m in tr.eyelid_indices:
+            _, a, b = gap_runs(gap[:, [m]])
+            medians[name] += [float(np.median(err[f0:f1 + 1, m])) for f0, f1 in zip(a, b)]
+    assert len(medians["neighbours"]) == 4                          # two blinks, two lids
+    assert min(medians["neighbours"]) > 3.0                          # the guide's method misses the closure
+    assert max(medians["blink_rom"]) <= 1.0, medians                 # issue 4's target, with a ROM depth
+    assert max(medians["blink"]) < min(medians["neighbours"]), medians
+
+
+def test_blink_method_leaves_ordinary_gaps_alone(c3d):
+    nb = evaluate_fill(c3d, "neighbours", seed=0)
+    bl = evaluate_fill(c3d, "blink", seed=0)
+    assert bl.n_filled == nb.n_filled
+    assert bl.median == pytest.approx(nb.median, abs=0.01) and bl.p95 == pytest.approx(nb.p95, abs=0.05)
+
+
 def test_stabilize_ops(sing, undo_check):
     take = sing.take
     take.current_frame = 100
