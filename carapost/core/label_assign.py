@@ -24,6 +24,9 @@
    occupied marker than half a missing marker's spacing, stays unlabelled.
 4. Optionally (default) :func:`~carapost.core.swaps.detect_swaps` checks the result, trusting
    the reference frame, and its repairs are applied.
+5. Optionally (default) the shape check (:mod:`carapost.core.label_shape`) re-identifies
+   markers against the rigid shape around the reference frame: it undoes confusions that
+   continuity alone never undoes (fast motion, a source's own inconsistent labels).
 """
 
 from __future__ import annotations
@@ -43,7 +46,8 @@ __all__ = ["AssignmentParams", "AssignmentEngine", "label_assignment", "kabsch",
 def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: int, *,
                      template: np.ndarray | None = None, ignore: Sequence[int] = (),
                      params: AssignmentParams | None = None, ratio: float = 0.5, passes: int = 2,
-                     repair_swaps: bool = True, progress: ProgressFn | None = None) -> LabelResult:
+                     repair_swaps: bool = True, shape_check: bool = True, shape_tolerance: float = 0.5,
+                     progress: ProgressFn | None = None) -> LabelResult:
     """Label unlabelled point clouds (the default method).
 
     Parameters
@@ -66,6 +70,12 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
         Linking (see :func:`~carapost.core.label_tracks.link_frames`).
     repair_swaps : bool
         Run :func:`~carapost.core.swaps.detect_swaps` on the result and apply its repairs.
+    shape_check : bool
+        Then re-identify markers against the shape around the reference frame
+        (:func:`~carapost.core.label_shape.shape_relabels`) and apply its repairs; where it
+        repaired something (and ``repair_swaps``), run the swap repair again, keeping the
+        repairs that lower the shape cost or raise it by at most ``shape_tolerance`` per frame
+        and marker moved, and then, if that changed anything, the shape check once more.
     progress : callable, optional
         ``progress(done, total)`` over the events; returning False stops early (the labels
         found so far are returned).
@@ -74,7 +84,7 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
     -------
     LabelResult
         ``report``: ``reference_frame``, ``tracklets``, ``events``, ``unlabelled_points``,
-        ``link_residual_mm`` (median, p90), ``swaps_repaired``, ``conflicts``.
+        ``link_residual_mm`` (median, p90), ``swaps_repaired``, ``shape_repairs``, ``conflicts``.
 
     Raises
     ------
@@ -153,8 +163,57 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
         if keep:
             labels = relabel_points(labels, keep)
             report["swaps_repaired"] = len(keep)
+    if shape_check:
+        labels, n_shape = _shape_check(pts, labels, tracks, h, n_markers, t0, ign,
+                                       shape_tolerance if repair_swaps else None)
+        report["shape_repairs"] = n_shape
     report["unlabelled_points"] = int((valid & (labels < 0)).sum())
     return LabelResult(labels, report)
+
+
+def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: np.ndarray, n_markers: int,
+                 t0: int, ign: np.ndarray, tolerance: float | None) -> tuple[np.ndarray, int]:
+    """Re-identify against the shape around frame ``t0``, then repair swaps by continuity again.
+
+    :func:`~carapost.core.label_shape.shape_relabels` repairs the labels that contradict the
+    rigid shape around the reference frame; :func:`~carapost.core.swaps.detect_swaps` then
+    repairs, by motion continuity, the short confusions left between them (during fast motion
+    the shape says little), keeping only repairs that do not break the shape (shape gain at
+    least ``-tolerance`` per frame and marker; ``None``: no second swap repair); if it
+    repaired something, the shape check runs once more. No repair moves a hinted point.
+    Returns the labels and the number of repairs applied.
+    """
+    from .label_shape import reference_model, relabel_gain, shape_relabels
+    from .swaps import apply_relabel, detect_swaps, relabel_points
+    F = pts.shape[0]
+    xyz = np.full((F, n_markers, 3), np.nan)
+    pieces = np.full((F, n_markers), -1, np.int64)
+    f, j = np.nonzero(labels >= 0)
+    xyz[f, labels[f, j]] = pts[f, j]
+    pieces[f, labels[f, j]] = tracks.tid[f, j]
+    fixed = np.flatnonzero(ign)
+    model = reference_model(xyz, t0, pieces=pieces)
+    hinted_frames = np.flatnonzero((hints >= 0).any(1))
+
+    def moves_hint(r) -> bool:
+        fr = hinted_frames[(hinted_frames >= r.start) & (hinted_frames < r.end)]
+        return bool(np.isin(hints[fr], r.markers).any())
+
+    keep = [r for r in shape_relabels(xyz, t0, pieces=pieces, fixed=fixed, model=model) if not moves_hint(r)]
+    if not keep:
+        return labels, 0
+    if tolerance is None:
+        return relabel_points(labels, keep), len(keep)
+    xyz = apply_relabel(xyz, keep)
+    n0 = len(keep)
+    for r in detect_swaps(xyz, fixed=fixed, reference_frame=t0).relabels:
+        if not moves_hint(r) and relabel_gain(xyz, model, r) >= -tolerance:
+            xyz = apply_relabel(xyz, [r])
+            keep.append(r)
+    if len(keep) > n0:
+        more = shape_relabels(xyz, t0, pieces=apply_relabel(pieces, keep), fixed=fixed, model=model)
+        keep += [r for r in more if not moves_hint(r)]
+    return relabel_points(labels, keep), len(keep)
 
 
 def _split_conflicting_hints(points: np.ndarray, links: np.ndarray, tracks: Tracklets,
