@@ -26,7 +26,7 @@ from .track_reject import GATE, prune_views
 if TYPE_CHECKING:  # pragma: no cover
     from .track_step import StepContext
 
-__all__ = ["match_points", "complete_anchors", "occluded", "elastic_radius", "inside"]
+__all__ = ["match_points", "complete_anchors", "reclaim", "occluded", "elastic_radius", "inside"]
 
 #: An unsupported (non-elastic) match must be this much nearer than the runner-up: d2 > 2 d1 + 1 px.
 AMBIGUITY_RATIO = 2.0
@@ -46,12 +46,17 @@ COMPLETE_PX = 3.0
 OWNER_FACTOR = 0.5
 #: Smallest elastic search radius, px.
 MIN_RADIUS_PX = 2.0
+#: A point placed by three views or more reclaims, in another camera, a detection this near
+#: its projection from a point holding it with only two views, px (see :func:`reclaim`).
+RECLAIM_PX = 1.0
+#: Views that make a point's position trustworthy enough to reclaim detections.
+RECLAIM_VIEWS = 3
 
 
 def match_points(ctx: "StepContext", dets: FrameDetections, pc: np.ndarray, active: np.ndarray, radius: np.ndarray,
            claimed: np.ndarray, cols: np.ndarray, app: Appearance | None, *, ratio: np.ndarray | None,
            penalty: np.ndarray | None, vote: np.ndarray | None = None,
-           owners: np.ndarray | None = None) -> np.ndarray:
+           owners: np.ndarray | None = None, hidden_by_claimed: np.ndarray | None = None) -> np.ndarray:
     """Match projections ``pc (C, n, 2)`` of points ``cols (n,)`` to detections; returns gids (C, n).
 
     ``ratio`` (n,) marks points that may only take an unambiguous nearest detection; points
@@ -60,7 +65,11 @@ def match_points(ctx: "StepContext", dets: FrameDetections, pc: np.ndarray, acti
     (:func:`~.track_match.neighbour_support`). With ``owners (C, n, 2)`` — where every point
     (``cols`` must then be every point) is expected in each camera, NaN if nowhere — a
     detection much nearer another point's expected projection than the query's is left to
-    that point (:data:`OWNER_FACTOR`), even if that point is not looking for it now.
+    that point (:data:`OWNER_FACTOR`), even if that point is not looking for it now. Points
+    marked in ``hidden_by_claimed`` (n,) (which must also be marked in ``ratio``) count
+    detections already claimed by other points as rivals too: a re-acquired point whose
+    projection falls on another point's detection is hidden behind it, and the nearest free
+    detection (a stray one) is not its.
     """
     C, n = active.shape
     out = np.full((C, n), -1, np.int64)
@@ -100,6 +109,8 @@ def match_points(ctx: "StepContext", dets: FrameDetections, pc: np.ndarray, acti
         if ratio is not None:
             best = cost.min(axis=1)
             amb = ratio[tq] & ~voted & ~((best <= cand.nearest + 1e-9) & (cand.second > AMBIGUITY_RATIO * best + 1.0))
+            if hidden_by_claimed is not None and cand.taken is not None:
+                amb |= hidden_by_claimed[tq] & ~(cand.taken > AMBIGUITY_RATIO * best + 1.0)
             cost = np.where(amb[:, None], np.inf, cost)
         if penalty is not None:
             cost = cost + penalty[tq][:, None]
@@ -132,18 +143,31 @@ def _leave_to_owners(dets: FrameDetections, cand, owners: np.ndarray, cost: np.n
     flat = np.flatnonzero(ok.ravel())
     if len(flat) == 0:
         return cost
+    valid = np.isfinite(cost) & (cand.det >= 0)
+    if not np.any(valid):
+        return cost
     key = owners.reshape(-1, 2)[flat].copy()
     key[:, 0] += (flat // n) * 1.0e6
-    tree = cKDTree(key)
-    g = np.where(cand.det >= 0, cand.det, len(dets))
-    q = dets.pc[g].copy()                                                  # (Q, K, 2); padding row NaN
-    q[..., 0] += np.maximum(dets.cam[g], 0) * 1.0e6
-    valid = np.isfinite(q).all(-1) & np.isfinite(cost)
-    d, j = tree.query(np.where(valid[..., None], q, -1e12).reshape(-1, 2), k=1)
-    d = d.reshape(cost.shape)
-    who = flat[np.minimum(j, len(flat) - 1)].reshape(cost.shape) % n
-    other = valid & (who != tq[:, None]) & (d < OWNER_FACTOR * cost)
-    return np.where(other, np.inf, cost)
+    tree = cKDTree(key, balanced_tree=False, compact_nodes=False)
+    # each candidate detection once; only owners nearer than OWNER_FACTOR * cost matter
+    dv = cand.det[valid]
+    mark = np.zeros(len(dets) + 1, bool)
+    mark[dv] = True
+    g = np.flatnonzero(mark)
+    pos = np.empty(len(mark), np.int64)
+    pos[g] = np.arange(len(g))
+    inv = pos[dv]
+    q = dets.pc[g].copy()
+    q[:, 0] += dets.cam[g] * 1.0e6
+    cv = cost[valid]
+    d, j = tree.query(q, k=1, distance_upper_bound=OWNER_FACTOR * float(cv.max()) + 1e-9)
+    found = j < len(flat)
+    who = np.where(found, flat[np.minimum(j, len(flat) - 1)] % n, -1)
+    d, who = d[inv], who[inv]
+    other = (who >= 0) & (who != np.broadcast_to(tq[:, None], cost.shape)[valid]) & (d < OWNER_FACTOR * cv)
+    out = cost.copy()
+    out.reshape(-1)[np.flatnonzero(valid.ravel())[other]] = np.inf
+    return out
 
 
 def inside(pc: np.ndarray, size: np.ndarray) -> np.ndarray:
@@ -198,6 +222,57 @@ def complete_anchors(ctx: "StepContext", dets: FrameDetections, pts: np.ndarray,
     Xa[cols] = X[np.isin(got, cols)]
 
 
+def reclaim(dets: FrameDetections, strong: np.ndarray, weak: np.ndarray, X: np.ndarray, tent: np.ndarray,
+            claimed: np.ndarray, R: np.ndarray, t: np.ndarray, cams: CameraSet) -> tuple[np.ndarray, np.ndarray]:
+    """Give back to well-placed points the detections that poorly placed ones took from them.
+
+    In a fast expression the motion-model predictions are off by millimetres, so a point
+    can take, in round 0, a neighbour's detection in a camera where it is itself hidden; with
+    two views (one caddy each) the wrong pair may still triangulate consistently. A point
+    placed by :data:`RECLAIM_VIEWS` views or more (``strong``) whose projection in a camera
+    it was not matched in lies within :data:`RECLAIM_PX` of a detection held by a ``weak``
+    point with only two views has a far better claim to it: the detection is released
+    (``tent`` and ``claimed`` updated in place) so that :func:`complete_anchors` can give it
+    to the strong point.
+
+    Returns
+    -------
+    weakened, claimants : bool arrays (T,)
+        Points that lost a view; points that may now take it.
+    """
+    C, T = tent.shape
+    lost_view = np.zeros(T, bool)
+    gained = np.zeros(T, bool)
+    nv = (tent >= 0).sum(0)
+    strong = strong & (nv >= RECLAIM_VIEWS)
+    holders = weak & (nv == 2)
+    if not np.any(strong) or not np.any(holders) or len(dets) == 0:
+        return lost_view, gained
+    pc = cams.to_pixels(cams.project_uv(np.where(strong[:, None], X, np.nan), R, t))        # (C, T, 2)
+    ask = strong[None, :] & (tent < 0) & np.isfinite(pc).all(-1)
+    cq, tq = np.nonzero(ask)
+    if len(cq) == 0:
+        return lost_view, gained
+    q = pc[cq, tq].copy()
+    q[:, 0] += cq * 1.0e6
+    d, g = dets.tree.query(q, k=1, distance_upper_bound=RECLAIM_PX)
+    found = g < len(dets)
+    owner = np.full(len(dets) + 1, -1, np.int64)
+    hc, ht = np.nonzero(holders[None, :] & (tent >= 0))
+    owner[tent[hc, ht]] = ht
+    h = np.where(found, owner[np.minimum(g, len(dets))], -1)
+    take = found & (h >= 0) & (h != tq)
+    if not np.any(take):
+        return lost_view, gained
+    gi, hi = g[take], h[take]
+    cam = dets.cam[gi]
+    tent[cam, hi] = -1
+    claimed[gi] = False
+    lost_view[hi] = True
+    gained[tq[take]] = True
+    return lost_view, gained
+
+
 def occluded(X: np.ndarray, members: np.ndarray, occluders: np.ndarray, pc: np.ndarray, R: np.ndarray,
               t: np.ndarray) -> np.ndarray:
     """Points hidden behind another point in a camera, bool (C, T).
@@ -214,7 +289,7 @@ def occluded(X: np.ndarray, members: np.ndarray, occluders: np.ndarray, pc: np.n
         return out.reshape(C, T)
     key = pc.reshape(-1, 2)[flat].copy()
     key[:, 0] += (flat // T) * 1.0e6
-    pairs = cKDTree(key).query_pairs(OCCLUSION_PX, output_type="ndarray")
+    pairs = cKDTree(key, balanced_tree=False, compact_nodes=False).query_pairs(OCCLUSION_PX, output_type="ndarray")
     if len(pairs) == 0:
         return out.reshape(C, T)
     a, b = flat[pairs[:, 0]], flat[pairs[:, 1]]
@@ -233,4 +308,4 @@ def elastic_radius(Xel: np.ndarray, sigma: np.ndarray, R: np.ndarray, t: np.ndar
     z = np.matmul(np.where(np.isfinite(Xel), Xel, 0.0), R[:, 2, :].T).T + t[:, 2:3]      # (C, T) depth
     with np.errstate(invalid="ignore", divide="ignore"):
         r = GATE * sigma[None, :] * cams.f[:, None] / z + 1.0
-    return np.clip(np.nan_to_num(r, nan=cap, posinf=cap), MIN_RADIUS_PX, cap)
+    return np.clip(np.where(np.isnan(r) | (r == np.inf), cap, r), MIN_RADIUS_PX, cap)

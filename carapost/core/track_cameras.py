@@ -21,7 +21,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from .camera import Intrinsics, distort, normalized_rays, rodrigues
+from .camera import Intrinsics, distort, normalized_rays
 
 __all__ = ["CameraSet", "inv3", "triangulate_uv", "ray_nearest_points", "solve3", "information",
            "reprojection", "loo_residuals", "bundle_frame"]
@@ -118,17 +118,18 @@ def inv3(A: np.ndarray) -> np.ndarray:
     """Inverses ``(T, 3, 3)`` of batched symmetric 3x3 matrices (NaN where singular)."""
     a, bb, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
     d, e, f = A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]
-    i00 = d * f - e * e
-    i01 = c * e - bb * f
-    i02 = bb * e - c * d
-    i11 = a * f - c * c
-    i12 = bb * c - a * e
-    i22 = a * d - bb * bb
+    out = np.empty((len(A), 3, 3))
+    i00, i01, i02 = d * f - e * e, c * e - bb * f, bb * e - c * d
+    out[:, 0, 0] = i00
+    out[:, 0, 1] = out[:, 1, 0] = i01
+    out[:, 0, 2] = out[:, 2, 0] = i02
+    out[:, 1, 1] = a * f - c * c
+    out[:, 1, 2] = out[:, 2, 1] = bb * c - a * e
+    out[:, 2, 2] = a * d - bb * bb
     det = a * i00 + bb * i01 + c * i02
     good = np.abs(det) > 1e-12 * ((np.abs(a) + np.abs(d) + np.abs(f)) ** 3 + 1e-300)
-    inv = np.where(good, 1.0 / np.where(good, det, 1.0), np.nan)
-    out = np.stack([i00, i01, i02, i01, i11, i12, i02, i12, i22], axis=-1).reshape(-1, 3, 3)
-    return out * inv[:, None, None]
+    out *= np.where(good, 1.0 / np.where(good, det, 1.0), np.nan)[:, None, None]
+    return out
 
 
 def triangulate_uv(uv: np.ndarray, weight: np.ndarray, R: np.ndarray, t: np.ndarray, scale: np.ndarray, *,
@@ -339,13 +340,15 @@ def bundle_frame(brim_X: np.ndarray, brim_uv: np.ndarray, brim_use: np.ndarray, 
     R = np.array(R, float)
     t = np.array(t, float)
     X = np.array(X, float)
-    free = ((weight > 0).sum(0) >= 2) & np.isfinite(X).all(1)
-    w = np.where(free[None, :], weight, 0.0)
+    free_all = ((weight > 0).sum(0) >= 2) & np.isfinite(X).all(1)
+    sel = np.flatnonzero(free_all)
+    # only the free points take part (the others would be identity blocks of the Schur system)
+    w = weight[:, sel]
     wb = brim_use.astype(float)
     bX = np.where(brim_use[..., None], brim_X, 0.0)
     buv = np.where(brim_use[..., None], brim_uv, 0.0)
-    fuv = np.where(w[..., None] > 0, uv, 0.0)
-    Xf = np.where(free[:, None], X, 0.0)
+    fuv = np.where(w[..., None] > 0, uv[:, sel], 0.0)
+    Xf = X[sel]
     T = len(Xf)
     for _ in range(iterations):
         rb, Jb, _ = _pose_point_jacobians(bX, buv, R, t, scale)
@@ -362,7 +365,6 @@ def bundle_frame(brim_X: np.ndarray, brim_uv: np.ndarray, brim_use: np.ndarray, 
         Jpt = Jp.transpose(1, 0, 2, 3).reshape(T, 2 * C, 3)
         Jpwt = Jpw.transpose(1, 0, 2, 3).reshape(T, 2 * C, 3)
         V = np.matmul(Jpwt.transpose(0, 2, 1), Jpt)                                              # (T, 3, 3)
-        V[~free] = np.eye(3)
         gp = np.matmul(Jpwt.transpose(0, 2, 1), r.transpose(1, 0, 2).reshape(T, 2 * C, 1))[..., 0]   # (T, 3)
         W = np.matmul(Jcw.transpose(0, 1, 3, 2), Jp)                                             # (C, T, 6, 3)
         Vinv = inv3(V)
@@ -379,10 +381,34 @@ def bundle_frame(brim_X: np.ndarray, brim_uv: np.ndarray, brim_use: np.ndarray, 
             break
         WTdc = W.transpose(1, 3, 0, 2).reshape(T, 3, 6 * C) @ dc.reshape(6 * C)                  # (T, 3)
         dp = np.matmul(Vinv, (gp - WTdc)[..., None])[..., 0]
-        R = rodrigues(dc[:, :3]) @ R
+        R = _small_rotations(dc[:, :3]) @ R
         t = t + dc[:, 3:]
-        Xf = Xf + np.where(free[:, None], dp, 0.0)
-    return R, t, np.where(free[:, None], Xf, X)
+        Xf = Xf + dp
+    out = X.copy()
+    out[sel] = Xf
+    return R, t, out
+
+
+def _small_rotations(w: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``(C, 3, 3)`` of axis-angle vectors ``(C, 3)`` (radians): Rodrigues'
+    formula written out for a few vectors (``camera.rodrigues`` is general and slower)."""
+    theta = np.sqrt((w * w).sum(1))
+    small = theta < 1e-8
+    th = np.where(small, 1.0, theta)
+    a = np.where(small, 1.0, np.sin(th) / th)                      # sin(th) / th
+    b = np.where(small, 0.5, (1.0 - np.cos(th)) / (th * th))       # (1 - cos th) / th^2
+    x, y, z = w[:, 0], w[:, 1], w[:, 2]
+    out = np.empty((len(w), 3, 3))
+    out[:, 0, 0] = 1.0 - b * (y * y + z * z)
+    out[:, 1, 1] = 1.0 - b * (x * x + z * z)
+    out[:, 2, 2] = 1.0 - b * (x * x + y * y)
+    out[:, 0, 1] = b * x * y - a * z
+    out[:, 1, 0] = b * x * y + a * z
+    out[:, 0, 2] = b * x * z + a * y
+    out[:, 2, 0] = b * x * z - a * y
+    out[:, 1, 2] = b * y * z - a * x
+    out[:, 2, 1] = b * y * z + a * x
+    return out
 
 
 def ray_nearest_points(uv: np.ndarray, R: np.ndarray, t: np.ndarray, target: np.ndarray) -> np.ndarray:

@@ -149,6 +149,10 @@ class Candidates:
     nearest, second : arrays (Q,)
         Distances to the nearest and second-nearest unclaimed detections of compatible
         polarity, whatever their size or distance (inf if none): how ambiguous a match is.
+    taken : array (Q,)
+        Distance to the nearest claimed detection of compatible polarity (inf if none among
+        the ``K``): where it is much nearer than any free one, the point is probably hidden
+        behind the point that claimed it.
     """
 
     query: np.ndarray
@@ -157,6 +161,7 @@ class Candidates:
     ok: np.ndarray
     nearest: np.ndarray
     second: np.ndarray
+    taken: np.ndarray | None = None
 
 
 def query_candidates(dets: FrameDetections, pred_pc: np.ndarray, active: np.ndarray, radius: np.ndarray, *,
@@ -196,11 +201,13 @@ def query_candidates(dets: FrameDetections, pred_pc: np.ndarray, active: np.ndar
     if len(q) == 0 or G == 0:
         e = np.zeros((len(q), k))
         inf = np.full(len(q), np.inf)
-        return Candidates(q, np.full((len(q), k), -1), np.full_like(e, np.inf), e.astype(bool), inf, inf.copy())
+        return Candidates(q, np.full((len(q), k), -1), np.full_like(e, np.inf), e.astype(bool), inf, inf.copy(),
+                          inf.copy())
     cq, tq = np.divmod(q, T)
     pts = pred_pc.reshape(-1, 2)[q].copy()
     pts[:, 0] += cq * _OFFSET
-    rad = np.broadcast_to(radius, (C, T)).reshape(-1)[q]
+    radius = np.asarray(radius, float)
+    rad = radius[tq] if radius.ndim == 1 else radius.reshape(-1)[q]
     kk = min(k, G)
     dist, j = dets.tree.query(pts, k=kk, distance_upper_bound=float(np.max(rad)) + 1e-9)
     dist = dist.reshape(len(q), kk)
@@ -217,7 +224,8 @@ def query_candidates(dets: FrameDetections, pred_pc: np.ndarray, active: np.ndar
     dfree.sort(axis=1)
     second = dfree[:, 1] if kk > 1 else np.full(len(q), np.inf)
     det = np.where(found, j, -1)
-    return Candidates(q, det, np.where(ok, dist, np.inf), ok, dfree[:, 0].copy(), second)
+    taken = np.where(found & claimed[j] & pol_ok, dist, np.inf).min(axis=1)
+    return Candidates(q, det, np.where(ok, dist, np.inf), ok, dfree[:, 0].copy(), second, taken)
 
 
 def greedy_assign(query: np.ndarray, det: np.ndarray, cost: np.ndarray, n_det: int) -> np.ndarray:
@@ -304,30 +312,51 @@ def neighbour_support(dets: FrameDetections, cand: Candidates, pred_pc: np.ndarr
     if Q == 0:
         return np.zeros((0, K))
     ok = cand.ok
-    disp = np.full((C * T, K, 2), np.nan, np.float32)
-    d = dets.pc[np.where(ok, cand.det, -1)]                                 # (Q, K, 2) NaN where not ok
-    disp[cand.query] = d - pred_pc.reshape(-1, 2)[cand.query][:, None, :]
     out = np.full((Q, K), np.nan)
     r = np.arange(Q) if rows is None else np.flatnonzero(rows)
     if len(r) == 0:
         return out
+    # only the gated candidates take part: compact them to the front of each row (Km <= K)
+    order = np.argsort(~ok, axis=1, kind="stable")
+    Km = max(int(ok.sum(1).max()), 1)
+    order = order[:, :Km]
+    rows_q = np.arange(Q)[:, None]
+    okc = ok[rows_q, order]                                                 # (Q, Km)
+    detc = cand.det[rows_q, order]
+    d = dets.pc[np.where(okc, detc, -1)]                                    # (Q, Km, 2) NaN where not ok
+    d -= pred_pc.reshape(-1, 2)[cand.query][:, None, :]
+    # displacements per flat projection, x and y apart (contiguous for the broadcasts below)
+    dispx = np.full((C * T, Km), np.nan, np.float32)
+    dispy = np.full((C * T, Km), np.nan, np.float32)
+    dispx[cand.query] = d[..., 0]
+    dispy[cand.query] = d[..., 1]
     queried = np.zeros(C * T, bool)
     queried[cand.query] = True
     qc, qt = np.divmod(cand.query[r], T)
     nb = qc[:, None] * T + neighbours[qt]                                   # (R, kn) flat ids
     w = weights[qt] * queried[nb]
-    ok = ok[r]
-    mine = disp[cand.query[r]]                                              # (R, K, 2)
-    theirs = disp[nb]                                                       # (Q, kn, K, 2)
-    dx = mine[:, None, :, None, 0] - theirs[:, :, None, :, 0]               # (Q, kn, K, K)
-    dy = mine[:, None, :, None, 1] - theirs[:, :, None, :, 1]
-    tol = tol_px + tol_rel * np.sqrt((mine * mine).sum(-1))                 # (Q, K)
+    mx, my = dispx[cand.query[r]], dispy[cand.query[r]]                     # (R, Km)
+    tx, ty = dispx[nb], dispy[nb]                                           # (R, kn, Km)
+    tol = tol_px + tol_rel * np.sqrt(mx * mx + my * my)                     # (R, Km)
+    tol2 = (tol * tol)[:, None, :]
+    agree = np.zeros(tx.shape, bool)                                        # (R, kn, Km)
+    # one of the neighbour's candidates at a time (no (R, kn, Km, Km) array, no reduction
+    # over a short axis)
     with np.errstate(invalid="ignore"):
-        agree = ((dx * dx + dy * dy) <= (tol * tol)[:, None, :, None]).any(-1)   # (Q, kn, K)
+        for j in range(Km):
+            dx = mx[:, None, :] - tx[:, :, j:j + 1]
+            dy = my[:, None, :] - ty[:, :, j:j + 1]
+            dx *= dx
+            dy *= dy
+            dx += dy
+            agree |= dx <= tol2
     sw = w.sum(1)
     with np.errstate(invalid="ignore", divide="ignore"):
         sup = np.einsum("qnk,qn->qk", agree.astype(np.float32), w.astype(np.float32)) / sw[:, None]
-    out[r] = np.where((sw > 0)[:, None] & ok, sup, np.where(ok, np.nan, 0.0))
+    res = np.where(ok[r], np.nan, 0.0)                                      # (R, K)
+    rr, jj = np.nonzero(okc[r])
+    res[rr, order[r][rr, jj]] = np.where(sw[rr] > 0, sup[rr, jj], np.nan)
+    out[r] = res
     return out
 
 

@@ -222,19 +222,21 @@ class NeighbourGraph:
         """
         w = (self.weight if weight is None else weight) * have[self.index]
         sw = w.sum(1)
-        count = (w > 1e-3).sum(1)
+        count = np.count_nonzero(w > 1e-3, axis=1)
         supported = (count >= min_count) & (sw > 1e-6)
-        vals = np.where(have[:, None], values, 0.0)[self.index]
+        vals = np.where(have[:, None], values, 0.0)[self.index]               # (T, k, 3)
         inv = np.where(supported, 1.0 / np.where(supported, sw, 1.0), 0.0)
         mean = np.einsum("tk,tkd->td", w, vals) * inv[:, None]
-        dev = np.sqrt(((vals - mean[:, None, :]) ** 2).sum(-1))
-        spread = np.where(supported, (w * dev).sum(1) * inv, np.nan)
+        vals -= mean[:, None, :]
+        dev = np.sqrt(np.einsum("tkd,tkd->tk", vals, vals))
+        spread = np.where(supported, np.einsum("tk,tk->t", w, dev) * inv, np.nan)
         return mean, spread, supported
 
 
 
 def transfer(last: np.ndarray, last_nb: np.ndarray, now_nb: np.ndarray, weight: np.ndarray, *,
-             min_count: int = 3, ridge: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+             min_count: int = 3, ridge: float = 0.1, min_translate: int | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
     """Where points last seen at ``last`` are now, from how their neighbours moved since.
 
     The neighbours' displacements since then are fitted by a weighted affine field around
@@ -254,6 +256,9 @@ def transfer(last: np.ndarray, last_nb: np.ndarray, now_nb: np.ndarray, weight: 
         Fewest neighbours known both then and now.
     ridge : float
         Regularisation of the field's gradient, relative to the neighbourhood's spread.
+    min_translate : int, optional
+        With fewer than ``min_count`` neighbours but at least this many, the point moves by
+        their weighted mean displacement (a pure translation). Default: no fallback.
 
     Returns
     -------
@@ -281,4 +286,11 @@ def transfer(last: np.ndarray, last_nb: np.ndarray, now_nb: np.ndarray, weight: 
     rhs = np.where(ok[:, None, None], np.matmul(Aw, D), 0.0)              # (n, 4, 3)
     coef = np.linalg.solve(N, rhs)
     pred = np.where(ok[:, None], last + coef[:, 0], last)
+    if min_translate is not None:
+        few = ~ok & (have.sum(1) >= max(min_translate, 1))
+        if np.any(few):
+            sw = w[few].sum(1)
+            shift = np.einsum("nk,nkd->nd", w[few], D[few]) / np.where(sw > 0, sw, 1.0)[:, None]
+            pred[few] = last[few] + shift
+            ok = ok | few
     return pred, ok

@@ -295,26 +295,27 @@ def consistent_views(uv: np.ndarray, w: np.ndarray, X: np.ndarray, Xel: np.ndarr
     X = X.copy()
     b = idx[bad]
     C = len(w)
-    best = np.full(len(b), np.inf)
-    best_c = np.full(len(b), -1)
-    best_X = np.full((len(b), 3), np.nan)
-    for c in range(C):
-        trial = w[:, b].copy()
-        has = trial[c] > 0
-        trial[c] = 0.0
-        usable = has & ((trial > 0).sum(0) >= 2)
-        if not np.any(usable):
-            continue
-        Xc, res = triangulate_uv(uv[:, b], trial, R, t, scale)
-        dc = mahalanobis(Xc, Xel[b], sigma[b], information(Xc, trial > 0, R, t, scale))
-        with np.errstate(invalid="ignore"):
-            good = usable & (dc <= gate) & (np.linalg.norm(Xc - Xel[b], axis=1) <= lim[b]) \
-                & ~(np.nanmax(np.where(trial > 0, res, 0.0), axis=0) > ANCHOR_RES_PX)
-        better = good & (dc < best)
-        best[better], best_c[better], best_X[better] = dc[better], c, Xc[better]
-    fixed = best_c >= 0
+    nb = len(b)
+    # every "drop view c" trial of every bad point at once: columns (c, point)
+    diag = np.arange(C)
+    trial = np.repeat(w[:, b][:, None, :], C, axis=1)                      # (C views, C trials, nb)
+    has = trial[diag, diag] > 0                                              # (C trials, nb)
+    trial[diag, diag] = 0.0
+    trial = trial.reshape(C, C * nb)
+    usable = has.reshape(-1) & ((trial > 0).sum(0) >= 2)
+    U = np.broadcast_to(uv[:, b][:, None], (C, C, nb, 2)).reshape(C, C * nb, 2)
+    Xc, res = triangulate_uv(U, trial, R, t, scale)
+    Xe = np.tile(Xel[b], (C, 1))
+    dc = mahalanobis(Xc, Xe, np.tile(sigma[b], C), information(Xc, trial > 0, R, t, scale))
+    with np.errstate(invalid="ignore"):
+        good = usable & (dc <= gate) & (np.linalg.norm(Xc - Xe, axis=1) <= np.tile(lim[b], C)) \
+            & ~(np.nanmax(np.where(trial > 0, res, 0.0), axis=0) > ANCHOR_RES_PX)
+    score = np.where(good, dc, np.inf).reshape(C, nb)
+    best_c = np.argmin(score, axis=0)
+    cols = np.arange(nb)
+    fixed = np.isfinite(score[best_c, cols])
     w[best_c[fixed], b[fixed]] = 0.0
-    X[b[fixed]] = best_X[fixed]
+    X[b[fixed]] = Xc.reshape(C, nb, 3)[best_c[fixed], cols[fixed]]
     ok[b[~fixed]] = False
     return w, X, ok
 

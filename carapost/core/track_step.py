@@ -21,7 +21,7 @@ from carapost.model.params import TrackingParameters
 from carapost.model.take import ObsSource, Recon
 
 from .track_cameras import CameraSet, bundle_frame, reprojection_fixed
-from .track_assign import complete_anchors, elastic_radius, inside, match_points, occluded
+from .track_assign import complete_anchors, elastic_radius, inside, match_points, occluded, reclaim
 from .track_match import FrameDetections, PatchSampler
 from .track_patches import Appearance, patch_track, update_templates
 from .track_predict import MotionModel, NeighbourGraph, transfer
@@ -47,6 +47,11 @@ LOST_SIGMA_CAP_MM = 1.5
 CONFIRM_AFTER = 1
 CONFIRM_MM = 2.0
 CONFIRM_WITHIN = 3
+#: ... or when the previous sighting (however long ago), carried by how its neighbours moved
+#: since (:func:`~.track_predict.transfer`), is within CARRY_CONFIRM_MM of this one, mm ...
+CARRY_CONFIRM_MM = 1.0
+#: ... or at once when seen by this many cameras.
+CONFIRM_VIEWS = 3
 #: Single-sensor tracking takes up a point lost for at most this many frames (0: it only
 #: continues a track; restarting lost points from one view let stray detections in).
 SS_RESTART_WITHIN = 0
@@ -88,6 +93,10 @@ class StepContext:
         #: in the previous frame (NaN = not seen)
         self.pending = np.full((len(self.lost), 3), np.nan)
         self.pending_age = np.zeros(len(self.lost), np.int64)
+        #: (T, 3), (T, k, 3): where that was, and its neighbours then
+        self.pending_X = np.full((len(self.lost), 3), np.nan)
+        self.pending_nb = np.full((len(self.lost), self.graph.index.shape[1], 3), np.nan)
+        self.pending_cams = np.zeros((len(self.lost), len(self.R)), bool)   #: (T, C) its cameras
         #: (T, 3), (T, k, 3): each point's position when last measured in several views and
         #: its neighbours' positions then (see :func:`~.track_predict.transfer`)
         self.last_X = self.motion.x.copy()
@@ -226,6 +235,9 @@ def track_frame(ctx: StepContext, dets: FrameDetections, claimed: np.ndarray,
     # the anchors claim their detections in the cameras they were not matched in, before the
     # others go looking
     done = face & anchors & ~known
+    # (first, detections taken by points placed from two views that a point placed from more
+    # views projects onto are released to it)
+    done &= ~_reclaim(ctx, dets, done, face & ~known, anchors, Xa, tent, claimed, R, t)[0]
     complete_anchors(ctx, dets, done, Xa, tent, claimed, R, t, app, anchor_px, not p.remove_bad_2d_projections,
                      np.where(known[:, None], Xk, Xcv), (face & ~lost) | known, hidden)
     # elastic rounds: the others, predicted from their matched neighbours
@@ -251,7 +263,8 @@ def track_frame(ctx: StepContext, dets: FrameDetections, claimed: np.ndarray,
         active = part[None, :] & inside(pc, ctx.image_size) & ctx.cam_ok[:, None] & ~occ
         Xw = np.where(anchors[:, None], Xa, np.where((face & ~lost)[:, None], Xel, np.nan))
         g = match_points(ctx, dets, pc, active, radius, claimed, all_cols, app, ratio=ratio, penalty=penalty,
-                         vote=~sup & ~lost, owners=cams.to_pixels(cams.project_uv(Xw, R, t)))
+                         vote=~sup & ~lost, owners=cams.to_pixels(cams.project_uv(Xw, R, t)),
+                         hidden_by_claimed=lost)
         # (a lost point's prediction has drifted with its neighbours for a while: less certain)
         sigma = sigma + drift
         uvg = dets.uv[g]
@@ -266,8 +279,9 @@ def track_frame(ctx: StepContext, dets: FrameDetections, claimed: np.ndarray,
         if not np.any(new):
             break
     # (the same for the later anchors)
+    _, claimants = _reclaim(ctx, dets, face & anchors & ~known, face & ~known, anchors, Xa, tent, claimed, R, t)
     Xel, sigma, sup = elastic_prediction(ctx.graph, Xa, Xcv, anchors & ~lost, weight=nbw)
-    complete_anchors(ctx, dets, face & anchors & ~known & ~done, Xa, tent, claimed, R, t, app, anchor_px,
+    complete_anchors(ctx, dets, face & anchors & ~known & (~done | claimants), Xa, tent, claimed, R, t, app, anchor_px,
                      not p.remove_bad_2d_projections, Xel, (face & ~lost) | known, occ)
     Xel, sigma, sup = elastic_prediction(ctx.graph, Xa, Xcv, anchors & ~lost, weight=nbw)
     pred = np.where(anchors[:, None], Xa, Xel)
@@ -343,8 +357,24 @@ def track_frame(ctx: StepContext, dets: FrameDetections, claimed: np.ndarray,
         with np.errstate(invalid="ignore"):
             confirmed = back & (np.linalg.norm(off - ctx.pending, axis=1) <= CONFIRM_MM) \
                 & (ctx.pending_age <= CONFIRM_WITHIN)
+        # the sighting agrees with the previous one carried by the neighbours' motion since
+        Xnb = np.where(((measured & ~lost) | known)[:, None], np.where(known[:, None], Xk, X), np.nan)
+        bi = np.flatnonzero(back)
+        Xt, okt = transfer(ctx.pending_X[bi], ctx.pending_nb[bi], Xnb[ctx.graph.index[bi]], ctx.graph.weight[bi])
+        dt = np.linalg.norm(X[bi] - Xt, axis=1)
+        with np.errstate(invalid="ignore"):
+            confirmed[bi] |= okt & (dt <= CARRY_CONFIRM_MM)
+        # ... by the same cameras: a point seen by one camera, put on its ray by a different
+        # stray detection in another camera each time, would agree with itself along that ray
+        views = (fw2 > 0).T                                                  # (T, C)
+        confirmed &= (views == ctx.pending_cams).all(1)
+        # three or more views agreeing (leave-one-out) are not a chance pair of stray detections
+        confirmed |= back & (views.sum(1) >= CONFIRM_VIEWS)
         fresh = back & ~confirmed
         ctx.pending = np.where(fresh[:, None], off, ctx.pending)
+        ctx.pending_X = np.where(back[:, None], X, ctx.pending_X)
+        ctx.pending_nb[back] = Xnb[ctx.graph.index[back]]
+        ctx.pending_cams[back] = views[back]
         ctx.pending_age = np.where(fresh, 0, ctx.pending_age)
         fw2[:, fresh] = 0.0
         measured &= ~fresh
@@ -397,7 +427,8 @@ def track_frame(ctx: StepContext, dets: FrameDetections, claimed: np.ndarray,
     Xnow = np.where(known[:, None], Xk, np.where(multi[:, None], Xout, np.nan))
     gone = np.flatnonzero(face & ~multi & ~single)
     if len(gone):
-        Xt, okt = transfer(ctx.last_X[gone], ctx.last_nb[gone], Xnow[ctx.graph.index[gone]], ctx.graph.weight[gone])
+        Xt, okt = transfer(ctx.last_X[gone], ctx.last_nb[gone], Xnow[ctx.graph.index[gone]], ctx.graph.weight[gone],
+                            min_translate=1)
         carry[gone[okt]] = Xt[okt]
         sup2[gone[okt]] = True
     motion.step(multi & ~lost, Xout, carried_x=carry, carried_v=np.where(vsup[:, None], vn, 0.0), carried=sup2)
@@ -438,6 +469,18 @@ def _adjust_cameras(ctx: StepContext, dets: FrameDetections, Xbc: np.ndarray, gb
         counts["rejected_2d"] += int(bad.sum())
         gb = np.where(bad, -1, gb)
     return R, t, gb, X
+
+
+def _reclaim(ctx: StepContext, dets: FrameDetections, strong: np.ndarray, weak: np.ndarray, anchors: np.ndarray,
+             Xa: np.ndarray, tent: np.ndarray, claimed: np.ndarray, R: np.ndarray,
+             t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`~.track_assign.reclaim`, then anchors left with one view stop being anchors
+    (updates ``anchors`` and ``Xa`` in place). Returns ``(dropped, claimants)``."""
+    weakened, claimants = reclaim(dets, strong, weak, Xa, tent, claimed, R, t, ctx.cams)
+    dropped = weakened & anchors & ((tent >= 0).sum(0) < 2)
+    anchors &= ~dropped
+    Xa[dropped] = np.nan
+    return dropped, claimants
 
 
 def _plausible(ctx: StepContext, X: np.ndarray, Xcv: np.ndarray, check: np.ndarray, max3d: float) -> np.ndarray:

@@ -27,7 +27,7 @@ The reference guide's "Tracking algorithm", for each frame step (forwards or bac
    where it passes within the *Single Sensor Tracking Threshold* of its prediction.
 
 A lost point moves with its neighbours and is re-acquired when it reappears (after a longer
-loss only once two frames agree). :func:`track` is pure: it reads the take and returns a
+loss only once three cameras, or two sightings by the same cameras, agree). :func:`track` is pure: it reads the take and returns a
 :class:`TrackResult`; :mod:`carapost.ops.track` turns it into an undoable change. See
 ``docs/tracking.md``.
 """

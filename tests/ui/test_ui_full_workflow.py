@@ -49,7 +49,7 @@ def test_detect_to_export_then_undo_all(qtbot, loaded, tiny_files, tmp_path):
     w.actions["process.init3d"].trigger()
     wait(qtbot, w)
     face = np.flatnonzero(take.points.kind == PointKind.FACE)
-    assert np.isfinite(take.xyz[0, face]).all(-1).sum() >= 25
+    assert np.isfinite(take.xyz[0, face]).all(-1).sum() >= 20      # of 35 markers, small dots
 
     w.actions["process.track_fwd_seq"].trigger()
     wait(qtbot, w)
