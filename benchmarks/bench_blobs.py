@@ -2,21 +2,30 @@
 
 Both run on the same 1280x720 frames with exact ground truth:
 
+* camera images of synthetic takes (:mod:`carapost.synth`): black or white face markers (35,
+  80 or 156) and the brim card's dots (black on white, or white on black with white markers),
+  several seeds, the neutral frame and the frames where the jaw is most open and where another
+  expression peaks, all four cameras, every other take JPEG-coded (quality 92); truth = area
+  centroid of each dot's image;
 * rendered frames (``tests/core/blob_images.py``): black and white dots of 2-10 px, skin
-  texture, shading, blur, noise, JPEG, low light, occluding edges and merged pairs;
-* camera images of synthetic takes (:mod:`carapost.synth`, when available): face markers and
-  the brim card's dots, truth = area centroid of each visible dot.
+  texture, shading, blur, noise, JPEG, low light, occluding edges, merged pairs, saturated
+  regions.
 
 ``cv2.SimpleBlobDetector`` is tuned fairly: area, circularity, convexity and inertia filters
-are set for 2-12 px dots, each polarity is run separately, and its threshold ladder and shape
-limits are chosen by a small grid search (best F1) on separate tuning frames.
+are set for the radius range, each polarity is run separately, and its threshold ladder and
+shape limits are chosen by a small grid search (best F1) on separate tuning frames.
 
-A detection matches a truth dot within 1.5 px (one-to-one). Detections near dots that are
-partly occluded, merged, cut by the image border, or projected but hidden, are excluded from
-both denominators and counted in ``excluded``. Time is CPU time of the calling thread per
-frame and polarity with OpenCV limited to one thread (``per_core_ms``).
+A detection matches a truth dot of its polarity within 1.5 px (one-to-one). Dots that are
+partly hidden (``truth.partly_hidden``: part of the rim behind the skin or the card), merged
+with another dot, or within a pixel of the image border are excluded from the denominators;
+detections near them (within their radius + 2 px) are neither right nor wrong, and are
+reported separately (``partial``: how many such dots get a detection more than 1.5 px from
+their true centre). ``faint_dots`` counts the dots to find that change the noise-free image by
+less than ``FAINT_CONTRAST`` grey levels (a white dot on clipped skin, a black dot in a black
+mouth); they count in ``recall``, and ``recall_not_faint`` is the recall without them. Time is CPU time of the calling thread per frame and polarity with OpenCV
+limited to one thread (``per_core_ms``, median over frames).
 
-Prints one JSON line. ``python benchmarks/bench_blobs.py [--frames 12] [--synth 8]``
+Prints one JSON line. ``python benchmarks/bench_blobs.py [--seeds 2] [--frames 10]``
 """
 
 from __future__ import annotations
@@ -26,6 +35,7 @@ import itertools
 import json
 import sys
 import time
+from collections import defaultdict
 from pathlib import Path
 
 import cv2
@@ -41,94 +51,170 @@ from carapost.core.blobs import detect_blobs  # noqa: E402
 from carapost.model.params import BlobParameters  # noqa: E402
 
 MATCH_RADIUS = 1.5
-R_MIN, R_MAX = 1.5, 12.0
+#: Dots that change the (noise-free, clipped) image by less than this many grey levels are
+#: reported as ``faint`` (they stay in the recall; ``recall_not_faint`` leaves them out).
+FAINT_CONTRAST = 8.0
+R_MIN, R_MAX = 1.5, 14.0
 
 
 class Case:
-    """One image with its truth: ``xy (K,2)``, ``pol (K,)``, ``count (K,)`` (must be found),
-    and ``avoid (A,2)``/``avoid_r (A,)``: places where detections are neither right nor wrong."""
+    """One image with its truth: centres ``xy (K, 2)``, polarity ``pol (K,)``, ``must (K,)``
+    (must be found), ``partial (K,)`` (excluded), ``rad (K,)`` radii, ``brim (K,)``, and a
+    dict of condition labels ``tags``."""
 
-    def __init__(self, image, xy, pol, count, avoid, avoid_r, kind):
-        self.image, self.xy, self.pol, self.count = image, xy, pol, count
-        self.avoid, self.avoid_r, self.kind = avoid, avoid_r, kind
+    def __init__(self, image, xy, pol, must, partial, rad, brim, tags, faint=None):
+        self.image, self.xy, self.pol, self.must, self.partial = image, xy, pol, must, partial
+        self.rad, self.brim, self.tags = rad, brim, tags
+        self.faint = np.zeros(len(xy), bool) if faint is None else faint
 
 
 def rendered_cases(n: int, seed: int) -> list[Case]:
-    kinds = [RenderConfig(), RenderConfig(polarity="white"), RenderConfig(low_light=0.25),
-             RenderConfig(jpeg_quality=75, texture=0.1), RenderConfig(blur=(1.0, 1.4)),
-             RenderConfig(occluders=3, merged_pairs=8), RenderConfig(polarity="both", radius=(2.0, 5.0))]
+    kinds = [("black", RenderConfig()), ("white", RenderConfig(polarity="white")),
+             ("low_light", RenderConfig(low_light=0.25)),
+             ("jpeg_texture", RenderConfig(jpeg_quality=75, texture=0.1)), ("blur", RenderConfig(blur=(1.0, 1.4))),
+             ("occluded_merged", RenderConfig(occluders=3, merged_pairs=8)),
+             ("both", RenderConfig(polarity="both", radius=(2.0, 5.0))),
+             ("white_jpeg", RenderConfig(polarity="white", jpeg_quality=80)),
+             ("saturated", RenderConfig(saturated_region=True, polarity="both"))]
     out = []
     for i in range(n):
-        fr = render_frame(kinds[i % len(kinds)], seed=seed + i)
-        out.append(Case(fr.image, fr.xy, fr.polarity.astype(int), fr.clean, fr.xy[fr.partial],
-                        fr.axes[fr.partial, 0] + 2.0, "rendered"))
+        name, cfg = kinds[i % len(kinds)]
+        fr = render_frame(cfg, seed=seed + i)
+        out.append(Case(fr.image, fr.xy, fr.polarity.astype(int), fr.clean, fr.partial, fr.axes[:, 0],
+                        np.zeros(len(fr.xy), bool), {"set": "rendered", "kind": name}))
     return out
 
 
-def synth_cases(n: int, seed: int) -> list[Case]:
-    try:
-        from carapost.synth import SynthConfig, generate_take
-    except ImportError:
-        return []
+def synth_cases(seeds: list[int], counts=(35, 80, 156), colours=("black", "white"), frames_per_take: int = 3,
+                cameras=(0, 1, 2, 3)) -> list[Case]:
+    """Camera images of synthetic takes (see the module docstring)."""
+    from carapost.synth import SynthConfig, generate_take
+
     out = []
-    rng = np.random.default_rng(seed)
-    while len(out) < n:
-        cfg = SynthConfig(n_frames=2, n_markers=int(rng.choice([80, 156])), seed=int(rng.integers(1 << 30)),
-                          marker_colour=str(rng.choice(["black", "white"])))
+    for colour, n_markers, seed in itertools.product(colours, counts, seeds):
+        cfg = SynthConfig(n_frames=120, n_markers=n_markers, seed=seed, marker_colour=colour,
+                          brim_colour="white" if colour == "white" else "model")
         take = generate_take(cfg)
         tr = take.truth
-        mpol = -1 if cfg.marker_colour == "black" else 1
-        for f, c in itertools.product(range(take.n_frames), range(take.n_cameras)):
-            if len(out) >= n:
-                break
-            mk = np.isfinite(tr.centroid_xy[f, :, c, 0])
-            br = np.isfinite(tr.brim_centroid_xy[f, :, c, 0])
-            xy = np.concatenate([tr.centroid_xy[f, mk, c], tr.brim_centroid_xy[f, br, c]])
-            vis = np.concatenate([tr.visible[f, mk, c], tr.brim_visible[f, br, c]])
-            rad = np.concatenate([tr.radius_px[f, mk, c], tr.brim_radius_px[f, br, c]])
-            pol = np.concatenate([np.full(mk.sum(), mpol), np.full(br.sum(), -1)])
-            out.append(Case(take.image(f, c), xy, pol, vis, xy[~vis], rad[~vis] + 2.0, "synth"))
+        e = tr.expression
+        jaw = int(np.argmax(e[:, 0]))
+        other = int(np.argmax(e[:, 1:7].max(axis=1)))
+        frames = sorted({0, jaw, other})[:frames_per_take]
+        mpol = -1 if colour == "black" else 1
+        bpol = 1 if cfg.brim_colour == "white" else -1
+        jpeg = 92 if seed % 2 else 0
+        for f in frames:
+            imgs = take.images(f)
+            contrast = image_contrast(take, f, cameras)
+            for c in cameras:
+                img = imgs[c]
+                if jpeg:
+                    img = cv2.imdecode(cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, jpeg])[1],
+                                       cv2.IMREAD_GRAYSCALE)
+                mk = np.isfinite(tr.centroid_xy[f, :, c, 0])
+                br = np.isfinite(tr.brim_centroid_xy[f, :, c, 0])
+                xy = np.concatenate([tr.centroid_xy[f, mk, c], tr.brim_centroid_xy[f, br, c]])
+                vis = np.concatenate([tr.visible[f, mk, c], tr.brim_visible[f, br, c]])
+                part = np.concatenate([tr.partly_hidden[f, mk, c], np.zeros(br.sum(), bool)])
+                rad = np.concatenate([tr.radius_px[f, mk, c], tr.brim_radius_px[f, br, c]])
+                pol = np.concatenate([np.full(mk.sum(), mpol), np.full(br.sum(), bpol)])
+                brim = np.concatenate([np.zeros(mk.sum(), bool), np.ones(br.sum(), bool)])
+                H, W = img.shape
+                cut = ((xy[:, 0] - rad < 1) | (xy[:, 1] - rad < 1) | (xy[:, 0] + rad > W - 2)
+                       | (xy[:, 1] + rad > H - 2))
+                faint = np.array([contrast[c][min(max(int(round(y)), 0), H - 1), min(max(int(round(x)), 0), W - 1)]
+                                  < FAINT_CONTRAST for x, y in xy], bool)
+                out.append(Case(img, xy, pol, vis & ~part & ~cut, vis & (part | cut), rad, brim,
+                                {"set": "synth", "colour": colour, "markers": n_markers,
+                                 "jaw_open": bool(e[f, 0] > 0.3), "jpeg": bool(jpeg)}, faint))
     return out
 
 
-def score(cases: list[Case], dets: list[np.ndarray]) -> dict:
-    """Recall, precision, centre errors over cases; ``dets`` are (n, 2) arrays of centres."""
+def image_contrast(take, frame: int, cameras) -> dict:
+    """``{camera: float32 (H, W)}``: how much the dots change the image — the largest absolute
+    difference, over the 3x3 neighbourhood, between the noise-free frame with and without
+    its dots, both clipped to 0..255 as the camera clips them. A white dot on skin that is
+    already clipped, or a black dot inside a black mouth, changes nothing."""
+    cams = list(cameras)
+    a = np.clip(take.render(frame, cams, noise=False, dots=True, as_float=True), 0, 255)
+    b = np.clip(take.render(frame, cams, noise=False, dots=False, as_float=True), 0, 255)
+    return {c: cv2.dilate(np.abs(a[i] - b[i]).astype(np.float32), np.ones((3, 3), np.uint8))
+            for i, c in enumerate(cams)}
+
+
+def match_case(case: Case, xy: np.ndarray, pol: np.ndarray) -> dict:
+    """Per-case counts: tp, fn, fp, excluded detections, errors, brim tp/fn, partial dots and
+    those with a detection more than 1.5 px off."""
     from scipy.optimize import linear_sum_assignment
     from scipy.spatial import cKDTree
 
-    tp = fn = fp = excl = 0
-    errs = []
-    for case, d in zip(cases, dets):
-        want = case.xy[case.count]
-        matched = np.zeros(len(d), bool)
-        if len(d) and len(want):
-            dist = np.linalg.norm(d[:, None] - want[None], axis=2)
+    r = defaultdict(int)
+    r["errs"] = []
+    for p in sorted(set(case.pol.tolist())):
+        D = xy[pol == p]
+        want = np.flatnonzero((case.pol == p) & case.must)
+        matched = np.zeros(len(D), bool)
+        found = np.zeros(len(want), bool)
+        if len(D) and len(want):
+            dist = np.linalg.norm(D[:, None] - case.xy[want][None], axis=2)
             dist[dist > MATCH_RADIUS] = 1e6
-            r, c = linear_sum_assignment(dist)
-            ok = dist[r, c] <= MATCH_RADIUS
-            matched[r[ok]] = True
-            tp += int(ok.sum())
-            errs.extend(dist[r[ok], c[ok]].tolist())
-            fn += len(want) - int(ok.sum())
-        else:
-            fn += len(want)
-        rest = d[~matched]
-        if len(rest) and len(case.avoid):
-            dd, j = cKDTree(case.avoid).query(rest)
-            near = dd < case.avoid_r[j]
-        else:
-            near = np.zeros(len(rest), bool)
-        # Unmatched detections of a dot that must be found (duplicates, > 1.5 px) are errors.
-        excl += int(near.sum())
-        fp += int((~near).sum())
-    e = np.asarray(errs)
-    return {"recall": round(tp / max(tp + fn, 1), 5), "precision": round(tp / max(tp + fp, 1), 5),
-            "tp": tp, "fn": fn, "fp": fp, "excluded": excl,
-            "median_err_px": round(float(np.median(e)), 4) if len(e) else None,
-            "p95_err_px": round(float(np.percentile(e, 95)), 4) if len(e) else None}
+            i, j = linear_sum_assignment(dist)
+            ok = dist[i, j] <= MATCH_RADIUS
+            matched[i[ok]] = True
+            found[j[ok]] = True
+            r["errs"].extend(dist[i[ok], j[ok]].tolist())
+        r["tp"] += int(found.sum())
+        r["fn"] += int((~found).sum())
+        r["brim_tp"] += int(found[case.brim[want]].sum())
+        r["brim_fn"] += int((~found[case.brim[want]]).sum())
+        r["faint"] += int(case.faint[want].sum())
+        r["faint_tp"] += int(found[case.faint[want]].sum())
+        part = np.flatnonzero((case.pol == p) & case.partial)
+        rest = D[~matched]
+        near = np.zeros(len(rest), bool)
+        if len(part):
+            if len(rest):
+                dd, jj = cKDTree(case.xy[part]).query(rest)
+                near = dd < case.rad[part][jj] + 2.0
+            if len(D):
+                dd, jj = cKDTree(D).query(case.xy[part])
+                close = dd < case.rad[part] + 2.0
+                r["partial"] += len(part)
+                r["partial_off"] += int((close & (dd > MATCH_RADIUS)).sum())
+            else:
+                r["partial"] += len(part)
+        r["excluded"] += int(near.sum())
+        r["fp"] += int((~near).sum())
+    return r
 
 
-def run_ours(cases: list[Case]) -> tuple[list[np.ndarray], float]:
+def summarise(rows: list[dict]) -> dict:
+    tp = sum(r["tp"] for r in rows)
+    fn = sum(r["fn"] for r in rows)
+    fp = sum(r["fp"] for r in rows)
+    e = np.asarray([x for r in rows for x in r["errs"]])
+    out = {"frames": len(rows), "recall": round(tp / max(tp + fn, 1), 5), "precision": round(tp / max(tp + fp, 1), 5),
+           "tp": tp, "fn": fn, "fp": fp, "excluded": sum(r["excluded"] for r in rows),
+           "median_err_px": round(float(np.median(e)), 4) if len(e) else None,
+           "p95_err_px": round(float(np.percentile(e, 95)), 4) if len(e) else None}
+    btp = sum(r["brim_tp"] for r in rows)
+    bfn = sum(r["brim_fn"] for r in rows)
+    if btp + bfn:
+        out["brim_recall"] = round(btp / (btp + bfn), 5)
+    nf = sum(r["faint"] for r in rows)
+    if nf:
+        ftp = sum(r["faint_tp"] for r in rows)
+        out["faint_dots"] = nf
+        out["faint_found"] = ftp
+        out["recall_not_faint"] = round((tp - ftp) / max(tp + fn - nf, 1), 5)
+    npart = sum(r["partial"] for r in rows)
+    if npart:
+        out["partial_dots"] = npart
+        out["partial_off_1.5px"] = round(sum(r["partial_off"] for r in rows) / npart, 4)
+    return out
+
+
+def run_ours(cases: list[Case]) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[float]]:
     times, out = [], []
     for case in cases:
         pols = sorted(set(case.pol.tolist()))
@@ -137,8 +223,8 @@ def run_ours(cases: list[Case]) -> tuple[list[np.ndarray], float]:
         t = time.thread_time()
         d = detect_blobs(case.image, p)
         times.append((time.thread_time() - t) / len(pols))
-        out.append(np.stack([d["x"], d["y"]], 1).astype(float))
-    return out, float(np.median(times)) * 1e3
+        out.append((np.stack([d["x"], d["y"]], 1).astype(float), d["polarity"].astype(int)))
+    return out, times
 
 
 def sbd_params(min_thr: float, step: float, circ: float, inertia: float, colour: int) -> cv2.SimpleBlobDetector:
@@ -154,53 +240,80 @@ def sbd_params(min_thr: float, step: float, circ: float, inertia: float, colour:
     return cv2.SimpleBlobDetector_create(p)
 
 
-def run_sbd(cases: list[Case], setting: tuple) -> tuple[list[np.ndarray], float]:
+def run_sbd(cases: list[Case], setting: tuple) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[float]]:
     times, out = [], []
     for case in cases:
         pols = sorted(set(case.pol.tolist()))
-        pts = []
+        pts, pp = [], []
         t = time.thread_time()
         for pol in pols:
             det = sbd_params(*setting, colour=0 if pol < 0 else 255)
-            pts.extend(k.pt for k in det.detect(case.image))
+            k = det.detect(case.image)
+            pts.extend(kp.pt for kp in k)
+            pp.extend([pol] * len(k))
         times.append((time.thread_time() - t) / len(pols))
-        out.append(np.asarray(pts, float).reshape(-1, 2))
-    return out, float(np.median(times)) * 1e3
+        out.append((np.asarray(pts, float).reshape(-1, 2), np.asarray(pp, int)))
+    return out, times
 
 
 def tune_sbd(cases: list[Case]) -> tuple:
     best, best_f1 = None, -1.0
     for setting in itertools.product((10, 30), (10, 20), (0.5, 0.7), (0.1, 0.3)):
         dets, _ = run_sbd(cases, setting)
-        r = score(cases, dets)
+        r = summarise([match_case(c, *d) for c, d in zip(cases, dets)])
         f1 = 2 * r["recall"] * r["precision"] / max(r["recall"] + r["precision"], 1e-9)
         if f1 > best_f1:
             best, best_f1 = setting, f1
     return best
 
 
+def groups(cases: list[Case]) -> dict[str, list[int]]:
+    """Indices of the cases in each reported condition."""
+    g: dict[str, list[int]] = defaultdict(list)
+    for i, c in enumerate(cases):
+        t = c.tags
+        if t["set"] == "synth":
+            g["synth"].append(i)
+            g[f"synth_{t['colour']}"].append(i)
+            g[f"synth_{t['markers']}_markers"].append(i)
+            if t["jaw_open"]:
+                g["synth_jaw_open"].append(i)
+            if t["jpeg"]:
+                g["synth_jpeg"].append(i)
+        else:
+            g["rendered"].append(i)
+            g[f"rendered_{t['kind']}"].append(i)
+        g["all"].append(i)
+    return g
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=14, help="rendered test frames")
-    ap.add_argument("--synth", type=int, default=8, help="synthetic-take camera images")
+    ap.add_argument("--seeds", type=int, default=2, help="synthetic takes per (colour, marker count)")
+    ap.add_argument("--frames", type=int, default=9, help="rendered frames")
     ap.add_argument("--seed", type=int, default=500)
+    ap.add_argument("--cameras", type=int, default=4, help="cameras per synthetic frame")
     args = ap.parse_args()
     cv2.setNumThreads(1)
-    tuning = rendered_cases(3, args.seed + 1000) + synth_cases(min(args.synth, 2), args.seed + 1000)
-    rendered = rendered_cases(args.frames, args.seed)
-    synth = synth_cases(args.synth, args.seed)
+    tuning = rendered_cases(3, args.seed + 1000) + synth_cases([args.seed + 1000], counts=(80,), frames_per_take=1,
+                                                               cameras=(0,))
+    cases = synth_cases([args.seed + k for k in range(args.seeds)], cameras=tuple(range(args.cameras)))
+    cases += rendered_cases(args.frames, args.seed)
     setting = tune_sbd(tuning)
+    ours, t_ours = run_ours(cases)
+    sbd, t_sbd = run_sbd(cases, setting)
+    m_ours = [match_case(c, *d) for c, d in zip(cases, ours)]
+    m_sbd = [match_case(c, *d) for c, d in zip(cases, sbd)]
     result = {"benchmark": "blobs", "image": "1280x720", "match_radius_px": MATCH_RADIUS,
-              "sbd_setting": dict(zip(("minThreshold", "thresholdStep", "minCircularity", "minInertiaRatio"),
-                                      setting))}
-    for name, cases in (("rendered", rendered), ("synth", synth), ("all", rendered + synth)):
-        if not cases:
-            continue
-        ours, t_ours = run_ours(cases)
-        sbd, t_sbd = run_sbd(cases, setting)
-        result[name] = {"frames": len(cases),
-                        "ours": {**score(cases, ours), "per_core_ms": round(t_ours, 2)},
-                        "opencv_sbd": {**score(cases, sbd), "per_core_ms": round(t_sbd, 2)}}
+              "radius_range_px": [R_MIN, R_MAX],
+              "sbd_setting": dict(zip(("minThreshold", "thresholdStep", "minCircularity", "minInertiaRatio"), setting))}
+    for name, idx in groups(cases).items():
+        result[name] = {
+            "ours": {**summarise([m_ours[i] for i in idx]),
+                     "per_core_ms": round(1e3 * float(np.median([t_ours[i] for i in idx])), 1)},
+            "opencv_sbd": {**summarise([m_sbd[i] for i in idx]),
+                           "per_core_ms": round(1e3 * float(np.median([t_sbd[i] for i in idx])), 1)},
+        }
     print(json.dumps(result))
 
 

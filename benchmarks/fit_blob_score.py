@@ -1,24 +1,33 @@
-"""Fit the blob classifier's logistic coefficients on rendered frames with exact ground truth.
+"""Fit the blob classifier's logistic coefficients on images with exact ground truth.
 
-Renders frames of many kinds (black/white dots of 2-10 px, low light, JPEG, strong texture,
-blur, occluding edges, merged pairs, saturated regions; ``tests/core/blob_images.py``) and
-camera images of random synthetic takes (:mod:`carapost.synth`: faces with eyebrows, lips,
-eyes, hair, a black background and the brim card), runs
-the detector's candidate stage and fit (:func:`carapost.core.blobs.analyse_blobs`), labels every
-fitted candidate and fits
+Two sources, both with exact dot centres:
 
-* ``COEF`` (all features): positive = refined centre within ``POS_RADIUS`` px of the true
-  centre of a dot of the same polarity (fully or partly visible); everything else negative
-  (texture, occluder edges, biased centres of merged and partly occluded dots, poorly
-  located fits);
-* ``DENSE_COEF`` (``log_snr`` only, every candidate before fitting): positive = candidate pixel
-  within ``max(1.5, r/2)`` of a visible dot centre.
+* camera images of random synthetic takes (:mod:`carapost.synth`): faces with eyebrows, lips
+  (jaw open), eyes, hair, a black background, the brim card; black or white markers (and
+  white brim dots on a black card), 35/80/156 markers, random exposure, blur, noise and
+  vignetting, JPEG coding for a third of them, frames picked at expression peaks;
+* rendered frames (``tests/core/blob_images.py``): black/white dots of 2-10 px, low light,
+  JPEG, strong texture, blur, occluding edges, merged pairs, saturated regions.
 
-by iteratively reweighted least squares with a small ridge. Prints the coefficients as Python
-to paste into ``carapost/core/blob_score.py``, plus held-out log-loss and a reliability table
-(predicted vs observed frequency), as one JSON line at the end.
+The detector's candidate stage and fit (:func:`carapost.core.blobs.analyse_blobs`) run on
+every image; each fitted candidate is labelled **positive** when its centre is within
+``POS_RADIUS`` px of a dot of its polarity that must be found (fully visible, not merged, not
+cut), **negative** otherwise (texture, eyes, hair, edges, fits more than ``POS_RADIUS`` off,
+fits on merged or partly hidden dots). The classifier (a network with one hidden layer of
+``HIDDEN`` tanh units and a logistic output, :func:`carapost.core.blob_score.network_probability`)
+is fitted by minimising the log-loss plus a small weight penalty with L-BFGS from a fixed
+random start; the dense model (the preview's per-pixel logistic model on ``log_snr``) by
+iteratively reweighted least squares over every candidate (positive: within
+``max(1.5, r/2)`` of a visible dot).
 
-Run: ``python benchmarks/fit_blob_score.py [--frames 80]``
+Writes ``carapost/resources/blob_classifier.json`` (``--out`` to write elsewhere, ``--dry`` not
+at all) and prints one JSON line: held-out log-loss (new and current model), a reliability
+table (predicted vs observed frequency per decile) and the recall / precision of the held-out
+fits at thresholds 0.2..0.6.
+
+Run: ``python benchmarks/fit_blob_score.py [--synth 400] [--frames 100] [--cache feats.npz]``
+(``--cache`` stores the collected features; with ``--reuse`` they are loaded instead of
+recomputed, to try other settings of the fit quickly).
 """
 
 from __future__ import annotations
@@ -28,6 +37,7 @@ import json
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,8 +49,10 @@ from blob_images import RenderConfig, render_frame  # noqa: E402
 from carapost.core import blob_score  # noqa: E402
 from carapost.core.blobs import analyse_blobs  # noqa: E402
 
-POS_RADIUS = 0.5
-MIN_RADIUS, MAX_RADIUS = 1.5, 20.0
+POS_RADIUS = 1.0
+HIDDEN = 16
+PENALTY = 1e-4
+MIN_RADIUS, MAX_RADIUS = 1.5, 14.0
 
 
 def random_config(rng: np.random.Generator) -> RenderConfig:
@@ -64,95 +76,129 @@ def random_config(rng: np.random.Generator) -> RenderConfig:
 
 
 def synth_images(n_images: int, seed: int):
-    """Yield ``(image, truth_xy (K, 2), polarity (K,), radius (K,))`` from random synthetic takes
-    (:mod:`carapost.synth`): face markers and brim dots that are visible (centre unoccluded),
-    with their area centroids as the true centres."""
+    """Yield ``(image, xy (K, 2), polarity (K,), radius (K,), must (K,), seen (K,))`` from
+    random synthetic takes: every face marker and brim dot in the image; ``must`` are the
+    fully visible ones (not partly hidden, not within a pixel of the image border)."""
     from carapost.synth import SynthConfig, generate_take
 
     rng = np.random.default_rng(seed)
     done = 0
     while done < n_images:
-        cfg = SynthConfig(n_frames=2, n_markers=int(rng.choice([35, 80, 156])),
-                          seed=int(rng.integers(1 << 30)),
-                          marker_colour=str(rng.choice(["black", "white"])),
-                          marker_radius_mm=float(rng.uniform(1.0, 2.5)),
+        colour = str(rng.choice(["black", "white"]))
+        cfg = SynthConfig(n_frames=120, n_markers=int(rng.choice([35, 80, 156])),
+                          seed=int(rng.integers(1 << 30)), marker_colour=colour,
+                          brim_colour=str(rng.choice(["model", "white"])) if colour == "white" else "model",
+                          marker_radius_mm=float(rng.uniform(1.0, 2.2)),
                           blur_sigma=float(rng.uniform(0.4, 1.2)),
                           read_noise=float(rng.uniform(0.8, 3.0)),
                           vignetting=float(rng.uniform(0.0, 0.5)),
-                          exposure=float(rng.uniform(120.0, 320.0)),
+                          exposure=float(rng.uniform(150.0, 320.0)),
                           high_motion=bool(rng.random() < 0.3))
         take = generate_take(cfg)
         tr = take.truth
+        e = tr.expression
+        frames = sorted({int(rng.integers(take.n_frames)), int(np.argmax(e[:, 0])), int(np.argmax(e[:, 1:7].max(1)))})
         mpol = -1 if cfg.marker_colour == "black" else 1
-        for f in range(take.n_frames):
+        bpol = 1 if cfg.brim_colour == "white" else -1
+        jpeg = int(rng.choice([0, 0, 92, 80]))
+        for f in frames:
+            imgs = take.images(f)
             for c in range(take.n_cameras):
                 if done >= n_images:
                     return
-                mk = tr.visible[f, :, c] & np.isfinite(tr.centroid_xy[f, :, c, 0])
-                br = tr.brim_visible[f, :, c] & np.isfinite(tr.brim_centroid_xy[f, :, c, 0])
+                img = imgs[c]
+                if jpeg:
+                    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, jpeg])
+                    img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+                mk = np.isfinite(tr.centroid_xy[f, :, c, 0])
+                br = np.isfinite(tr.brim_centroid_xy[f, :, c, 0])
                 xy = np.concatenate([tr.centroid_xy[f, mk, c], tr.brim_centroid_xy[f, br, c]])
-                pol = np.concatenate([np.full(mk.sum(), mpol), np.full(br.sum(), -1)])
+                seen = np.concatenate([tr.visible[f, mk, c], tr.brim_visible[f, br, c]])
+                part = np.concatenate([tr.partly_hidden[f, mk, c], np.zeros(br.sum(), bool)])
                 rad = np.concatenate([tr.radius_px[f, mk, c], tr.brim_radius_px[f, br, c]])
-                yield take.image(f, c), xy, pol.astype(np.int8), rad
+                pol = np.concatenate([np.full(mk.sum(), mpol), np.full(br.sum(), bpol)]).astype(np.int8)
+                H, W = img.shape
+                cut = ((xy[:, 0] - rad < 1) | (xy[:, 1] - rad < 1) | (xy[:, 0] + rad > W - 2)
+                       | (xy[:, 1] + rad > H - 2))
+                yield img, xy, pol, rad, seen & ~part & ~cut, seen
                 done += 1
 
 
 def rendered_images(n_frames: int, seed: int):
-    """Yield ``(image, xy, polarity, radius, seen, visible)`` from ``tests/core/blob_images.py``."""
+    """Yield ``(image, xy, polarity, radius, must, seen)`` from ``tests/core/blob_images.py``."""
     rng = np.random.default_rng(seed)
     for _ in range(n_frames):
         fr = render_frame(random_config(rng), seed=int(rng.integers(1 << 30)))
-        yield (fr.image, fr.xy, fr.polarity, fr.axes[:, 0], fr.clean | fr.partial, fr.visible_frac > 0.5)
+        yield fr.image, fr.xy, fr.polarity, fr.axes[:, 0], fr.clean, fr.clean | fr.partial
 
 
-def collect(n_frames: int, seed: int, n_synth: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Features/labels of fitted candidates and (log_snr, label) of all candidates."""
+def collect(n_synth: int, n_frames: int, seed: int) -> dict[str, np.ndarray]:
+    """Measurements (``m_*``), labels and centre errors of fitted candidates, and (log_snr,
+    label) of all candidates, over ``n_synth`` synthetic-take images and ``n_frames``
+    rendered frames."""
     from scipy.spatial import cKDTree
 
     def sources():
+        yield from synth_images(n_synth, seed + 7)
         yield from rendered_images(n_frames, seed)
-        for img, xy, pol, rad in synth_images(n_synth, seed + 7):
-            ones = np.ones(len(xy), bool)
-            yield img, xy, pol, rad, ones, ones
 
-    X, y, Xd, yd = [], [], [], []
-    for f, (image, xy_all, pol_all, rad_all, seen_all, vis_all) in enumerate(sources()):
+    meas: dict[str, list] = {}
+    y, err, Xd, yd, nmust, src = [], [], [], [], [], []
+    total = n_synth + n_frames
+    for k, (image, xy_all, pol_all, rad_all, must_all, seen_all) in enumerate(sources()):
         for pol in (-1, 1):
             if not (pol_all == pol).any():
                 continue
             an = analyse_blobs(image, pol, min_radius=MIN_RADIUS, max_radius=MAX_RADIUS)
-            same = pol_all == pol
-            seen = seen_all & same
-            visible = vis_all & same
-            # Fitted candidates.
+            must = must_all & (pol_all == pol)
+            seen = seen_all & (pol_all == pol)
             sel = np.flatnonzero(an.ok)
-            lab = np.zeros(len(sel), bool)
-            if seen.any() and len(sel):
-                d, _ = cKDTree(xy_all[seen]).query(np.stack([an.x[sel], an.y[sel]], 1))
-                lab = d < POS_RADIUS
-            X.append(an.features[sel])
-            y.append(lab)
-            # All candidates, dense model.
+            e = np.full(len(sel), np.inf)
+            dot = np.full(len(sel), -1)
+            near_other = np.zeros(len(sel), bool)
+            pts = np.stack([an.x[sel], an.y[sel]], 1)
+            if must.any() and len(sel):
+                e, j = cKDTree(xy_all[must]).query(pts)
+                dot = np.where(e < 1.5, np.flatnonzero(must)[j], -1)
+            other = seen & ~must
+            if other.any() and len(sel):
+                e2, j2 = cKDTree(xy_all[other]).query(pts)
+                near_other = e2 < rad_all[other][j2] + 2.0
+            meas.setdefault("dot", []).append(dot)
+            meas.setdefault("near_other", []).append(near_other)
+            for name, v in an.measures.items():
+                meas.setdefault(name, []).append(np.asarray(v)[sel])
+            meas.setdefault("snr", []).append(an.snr[sel])
+            meas.setdefault("polarity", []).append(np.full(len(sel), pol))
+            y.append(e < POS_RADIUS)
+            err.append(e)
+            src.append(np.full(len(sel), k))
+            nmust.append((k, int(must.sum())))
+            meas.setdefault("image", []).append(np.full(len(sel), k * 2 + (pol > 0)))
             labd = np.zeros(len(an.snr), bool)
-            if visible.any() and len(an.snr):
-                d, j = cKDTree(xy_all[visible]).query(np.stack([an.cand_x, an.cand_y], 1))
-                labd = d < np.maximum(1.5, 0.5 * rad_all[visible][j])
+            if seen.any() and len(an.snr):
+                d, j = cKDTree(xy_all[seen]).query(np.stack([an.cand_x, an.cand_y], 1))
+                labd = d < np.maximum(1.5, 0.5 * rad_all[seen][j])
             Xd.append(np.log(np.clip(an.snr, 1e-3, None)))
             yd.append(labd)
-        print(f"image {f + 1}/{n_frames + n_synth}", file=sys.stderr, end="\r")
+        print(f"image {k + 1}/{total}", file=sys.stderr, end="\r")
     print(file=sys.stderr)
-    return np.concatenate(X), np.concatenate(y), np.concatenate(Xd), np.concatenate(yd)
+    return {**{f"m_{k}": np.concatenate(v) for k, v in meas.items()}, "y": np.concatenate(y), "err": np.concatenate(err),
+            "src": np.concatenate(src), "Xd": np.concatenate(Xd), "yd": np.concatenate(yd),
+            "n_must": np.asarray([n for _, n in nmust]).sum(keepdims=True)}
 
 
-def fit_logistic(X: np.ndarray, y: np.ndarray, ridge: float = 1e-3, iters: int = 50) -> np.ndarray:
+def fit_logistic(X: np.ndarray, y: np.ndarray, ridge: float = 1e-3, iters: int = 60,
+                 weight: np.ndarray | None = None) -> np.ndarray:
     """IRLS logistic regression (first column is the bias, not penalised)."""
     w = np.zeros(X.shape[1])
-    pen = np.full(X.shape[1], ridge * len(y))
+    sw = np.ones(len(y)) if weight is None else weight
+    pen = np.full(X.shape[1], ridge * sw.sum())
     pen[0] = 0.0
     for _ in range(iters):
-        p = 1.0 / (1.0 + np.exp(-(X @ w)))
-        g = X.T @ (p - y) + pen * w
-        H = (X * (p * (1 - p))[:, None]).T @ X + np.diag(pen) + 1e-9 * np.eye(X.shape[1])
+        p = 1.0 / (1.0 + np.exp(-np.clip(X @ w, -60, 60)))
+        g = X.T @ (sw * (p - y)) + pen * w
+        H = (X * (sw * p * (1 - p))[:, None]).T @ X + np.diag(pen) + 1e-9 * np.eye(X.shape[1])
         step = np.linalg.solve(H, g)
         w -= step
         if np.abs(step).max() < 1e-8:
@@ -176,31 +222,107 @@ def reliability(p: np.ndarray, y: np.ndarray) -> list[tuple[float, float, int]]:
     return out
 
 
+def operating_points(p: np.ndarray, err: np.ndarray, n_must: int) -> dict[str, dict[str, float]]:
+    """Recall (dots with a fit above the threshold within 1.5 px, over the dots to find) and
+    precision (fits above the threshold within 1.5 px of such a dot) at a few thresholds
+    (ignoring duplicates, which the detector resolves)."""
+    out = {}
+    for t in (0.2, 0.3, 0.4, 0.5, 0.6):
+        keep = p > t
+        good = keep & (err < 1.5)
+        out[str(t)] = {"recall_upper": round(float(good.sum() / max(n_must, 1)), 4),
+                       "precision": round(float(good.sum() / max(keep.sum(), 1)), 4)}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--frames", type=int, default=80)
-    ap.add_argument("--synth", type=int, default=80, help="camera images from carapost.synth takes")
+    ap.add_argument("--synth", type=int, default=160, help="camera images from carapost.synth takes")
+    ap.add_argument("--frames", type=int, default=60, help="rendered frames")
     ap.add_argument("--seed", type=int, default=1234)
+    ap.add_argument("--cache", type=Path, help="store (or with --reuse load) the collected features here")
+    ap.add_argument("--reuse", action="store_true")
+    ap.add_argument("--out", type=Path, default=blob_score.MODEL_PATH, help="where to write the classifier")
+    ap.add_argument("--dry", action="store_true", help="only report, do not write the classifier")
+    ap.add_argument("--hidden", type=int, default=HIDDEN, help="hidden units")
+    ap.add_argument("--penalty", type=float, default=PENALTY, help="weight penalty")
     args = ap.parse_args()
-    X, y, Xd, yd = collect(args.frames, args.seed, args.synth)
-    Xv, yv, Xdv, ydv = collect(max(args.frames // 4, 5), args.seed + 1, max(args.synth // 4, 4))
-    coef = fit_logistic(X, y.astype(float))
-    Dd = np.stack([np.ones_like(Xd), Xd], 1)
-    dcoef = fit_logistic(Dd, yd.astype(float))
-    pv = blob_score.probability(Xv, coef)
-    pdv = blob_score.dense_probability(np.exp(Xdv), dcoef)
-    print("COEF: np.ndarray = np.array([" + ", ".join(f"{c:.4f}" for c in coef) + "])")
-    print("DENSE_COEF: np.ndarray = np.array([" + ", ".join(f"{c:.4f}" for c in dcoef) + "])")
-    print(json.dumps({
-        "features": list(blob_score.FEATURES), "coef": [round(float(c), 4) for c in coef],
-        "dense_coef": [round(float(c), 4) for c in dcoef],
-        "train": {"n": int(len(y)), "positives": int(y.sum())},
-        "validation": {"n": int(len(yv)), "positives": int(yv.sum()), "log_loss": log_loss(pv, yv),
-                       "log_loss_current": log_loss(blob_score.probability(Xv), yv),
-                       "reliability": reliability(pv, yv),
-                       "dense_log_loss": log_loss(pdv.astype(float), ydv),
-                       "dense_reliability": reliability(pdv.astype(float), ydv)},
-    }))
+    cv2.setNumThreads(1)
+    if args.reuse and args.cache and args.cache.exists():
+        z = np.load(args.cache)
+        tr = {k[3:]: z[k] for k in z.files if k.startswith("tr_")}
+        va = {k[3:]: z[k] for k in z.files if k.startswith("va_")}
+    else:
+        tr = collect(args.synth, args.frames, args.seed)
+        va = collect(max(args.synth // 4, 4), max(args.frames // 4, 4), args.seed + 1)
+        if args.cache:
+            np.savez_compressed(args.cache, **{f"tr_{k}": v for k, v in tr.items()},
+                                **{f"va_{k}": v for k, v in va.items()})
+    for d in (tr, va):
+        m = {k[2:]: v for k, v in d.items() if k.startswith("m_")}
+        d["X"] = blob_score.features(m["snr"], m)
+    model = fit_network(tr["X"], tr["y"].astype(float), args.hidden, args.penalty, seed=args.seed)
+    Dd = np.stack([np.ones_like(tr["Xd"]), tr["Xd"]], 1)
+    model["dense_coef"] = fit_logistic(Dd, tr["yd"].astype(float))
+    pv = blob_score.network_probability(va["X"], model)
+    pdv = blob_score.dense_probability(np.exp(va["Xd"]), model["dense_coef"])
+    try:
+        current = log_loss(blob_score.probability(va["X"]), va["y"])
+    except (ValueError, OSError):
+        current = None
+    report = {
+        "features": list(blob_score.FEATURES), "hidden": args.hidden, "penalty": args.penalty,
+        "dense_coef": [round(float(c), 4) for c in model["dense_coef"]],
+        "train": {"n": int(len(tr["y"])), "positives": int(tr["y"].sum())},
+        "validation": {"n": int(len(va["y"])), "positives": int(va["y"].sum()), "log_loss": log_loss(pv, va["y"]),
+                       "log_loss_current": current,
+                       "reliability": reliability(pv, va["y"]),
+                       "operating_points": operating_points(pv, va["err"], int(va["n_must"][0])),
+                       "dense_log_loss": log_loss(pdv.astype(float), va["yd"]),
+                       "dense_reliability": reliability(pdv.astype(float), va["yd"])},
+    }
+    if not args.dry:
+        info = {"command": " ".join(["python benchmarks/fit_blob_score.py"] + sys.argv[1:]),
+                "train": report["train"], "validation_log_loss": round(report["validation"]["log_loss"], 4)}
+        blob_score.save_model(args.out, model, info)
+    print(json.dumps(report))
+
+
+def fit_network(X: np.ndarray, y: np.ndarray, hidden: int, penalty: float, seed: int = 0) -> dict:
+    """Fit :func:`carapost.core.blob_score.network_probability`'s weights to features ``X``
+    ``(N, F)`` (first column the bias, not used) and labels ``y`` ``(N,)``: minimise the mean
+    log-loss + ``penalty`` x the sum of squared weights with L-BFGS."""
+    from scipy.optimize import minimize
+
+    A = X[:, 1:]
+    mean, std = A.mean(axis=0), A.std(axis=0) + 1e-9
+    A = (A - mean) / std
+    d = A.shape[1]
+    shapes = [(d, hidden), (hidden,), (hidden,), ()]
+    sizes = [int(np.prod(s)) for s in shapes]
+
+    def unpack(w):
+        out, i = [], 0
+        for s, n in zip(shapes, sizes):
+            out.append(w[i:i + n].reshape(s))
+            i += n
+        return out
+
+    def loss(w):
+        W1, b1, w2, b2 = unpack(w)
+        h = np.tanh(A @ W1 + b1)
+        z = h @ w2 + b2
+        p = 1.0 / (1.0 + np.exp(-np.clip(z, -60, 60)))
+        val = np.mean(np.logaddexp(0.0, z) - y * z) + penalty * (np.sum(W1 ** 2) + np.sum(w2 ** 2))
+        g = (p - y) / len(y)
+        gh = np.outer(g, w2) * (1.0 - h * h)
+        grad = [A.T @ gh + 2 * penalty * W1, gh.sum(axis=0), h.T @ g + 2 * penalty * w2, np.array([g.sum()])]
+        return val, np.concatenate([a.ravel() for a in grad])
+
+    w0 = np.random.default_rng(seed).normal(0.0, 0.3, sum(sizes))
+    res = minimize(loss, w0, jac=True, method="L-BFGS-B", options={"maxiter": 3000})
+    W1, b1, w2, b2 = unpack(res.x)
+    return {"mean": mean, "std": std, "W1": W1, "b1": b1, "w2": w2, "b2": np.asarray(b2)}
 
 
 if __name__ == "__main__":

@@ -2,17 +2,21 @@
 
 The image is signed so that the wanted blobs are bright (black blobs: ``255 - image``). On an
 image pyramid (``cv2.pyrDown``), a difference of box filters — the mean of a small square minus
-the mean of the ring around it, inner sides 3 and 5 px and outer side 11 px at each level —
-responds to blobs of radius about 1.7 and 2.8 px at that level (``x 2**level`` in the full
-image). A linear illumination gradient gives zero response.
+the mean of the ring around it, outer side 11 px at each level — responds to blobs of a few
+pixels at that level (``x 2**level`` in the full image). A linear illumination gradient gives
+zero response. The search starts at pyramid level 1 (a quarter of the pixels): the first level
+has inner sides 1, 3 and 5 px (full-resolution radii about 1.1, 3.4 and 5.6 px), the next ones
+3 and 5 px. Candidates only need to fall inside their dot; the fit
+(:mod:`carapost.core.blob_fit`) works at full resolution.
 
 Each response map is divided by a robust estimate of its own spread over the image (1.4826 x
-the median absolute response: the response of the background, i.e. noise plus texture), which
-turns it into a signal-to-clutter ratio ("SNR"). With ``adaptive`` the spread is estimated per
-tile (uneven lighting: dark regions have smaller noise and smaller contrast, so they get their
-own scale). Candidates are local maxima of the best SNR over the scales of a level that exceed
-a low threshold; they are refined and scored by :mod:`carapost.core.blob_fit` and
-:mod:`carapost.core.blob_score`.
+the median absolute response over informative pixels: the response of the background, i.e.
+noise plus texture), which turns it into a signal-to-clutter ratio ("SNR"). With
+``adaptive`` the spread is estimated per tile (uneven lighting). Candidates are local maxima
+(3x3) of the best SNR over the scales of a level above a low threshold, then non-maximum
+suppression between scales (:func:`_suppress`). :func:`ring_test` then measures each
+candidate's contrast against a ring of pixels around it at full resolution, a cheap test
+that removes edges and texture before the fit.
 """
 
 from __future__ import annotations
@@ -22,40 +26,48 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["Candidates", "ResponseLevel", "signed_image", "pyramid", "level_range", "responses",
-           "find_candidates", "pixel_noise", "informative", "INNER_SIDES", "OUTER_SIDE", "scale_radius"]
+__all__ = ["Candidates", "ResponseLevel", "RingTest", "signed_image", "pyramid", "detection_scales",
+           "responses", "find_candidates", "ring_test", "pixel_noise", "informative", "OUTER_SIDE",
+           "refine_level", "MAX_REFINE_RADIUS"]
 
-#: Inner box sides (px at the pyramid level) and the common outer box side.
-INNER_SIDES: tuple[int, ...] = (3, 5)
+#: Outer box side (px at the pyramid level) of every centre-surround filter.
 OUTER_SIDE: int = 11
-#: Radius (px at the level) of the disc best matched by each inner box: equal area.
-_RADIUS_OF_SIDE = {s: s / np.sqrt(np.pi) for s in INNER_SIDES}
-#: Smallest response spread (grey levels x sqrt(1/n_in + 1/n_ring)) accepted for a level: the
-#: 8-bit quantisation noise, so a synthetic, noise-free image does not give infinite SNR.
+#: Inner box sides at the first detection level and at the coarser ones.
+_FIRST_SIDES: tuple[int, ...] = (1, 3, 5)
+_SIDES: tuple[int, ...] = (3, 5)
+#: First pyramid level searched for candidates.
+_FIRST_LEVEL = 1
+#: Smallest pixel-noise std (grey levels) assumed: the 8-bit quantisation noise, so that a
+#: synthetic, noise-free image does not give infinite SNR.
 _MIN_PIXEL_NOISE = 0.5
 #: Grey levels at or below / at or above which a pixel is black / saturated (no information).
 _FLAT_LO, _FLAT_HI = 4, 251
 #: Tile size (px at the level) for the adaptive (local) spread estimate.
 _TILE = 32
+#: Largest blob radius refined at full resolution; bigger blobs are refined on the pyramid
+#: level where their radius is at most this many pixels.
+MAX_REFINE_RADIUS = 8.0
+
+
+def _radius_of_side(side: int, level: int) -> float:
+    """Full-resolution radius (px) of the disc with the area of a ``side`` box at ``level``."""
+    return side / np.sqrt(np.pi) * 2.0 ** level
 
 
 @dataclass
 class Candidates:
-    """Candidate blob centres in full-resolution pixels.
+    """Candidate blob centres.
 
     Attributes
     ----------
     x, y : int arrays (N,)
         Position of the candidate at its pyramid level (level pixels).
     level : int array (N,)
-        Pyramid level (0 = full resolution).
+        Pyramid level the candidate was found on.
     radius : float64 (N,)
-        Radius estimate in full-resolution pixels.
+        Radius estimate in full-resolution pixels (from the best-matching scale).
     snr : float64 (N,)
         Best normalised response (signal-to-clutter ratio) at the candidate.
-    weber : float64 (N,)
-        Centre-surround response over the surround's grey level in the original image (a
-        rough Weber contrast: paint is a large relative change, skin texture a small one).
     """
 
     x: np.ndarray
@@ -63,15 +75,18 @@ class Candidates:
     level: np.ndarray
     radius: np.ndarray
     snr: np.ndarray
-    weber: np.ndarray
 
     def __len__(self) -> int:
         return len(self.x)
 
     def subset(self, sel: np.ndarray) -> "Candidates":
         """The candidates selected by an index or bool array."""
-        return Candidates(self.x[sel], self.y[sel], self.level[sel], self.radius[sel], self.snr[sel],
-                          self.weber[sel])
+        return Candidates(self.x[sel], self.y[sel], self.level[sel], self.radius[sel], self.snr[sel])
+
+    def full_xy(self) -> tuple[np.ndarray, np.ndarray]:
+        """Candidate positions in full-resolution pixels, float64 ``(N,)`` each."""
+        s = 2.0 ** self.level
+        return self.x * s, self.y * s
 
 
 @dataclass
@@ -79,22 +94,18 @@ class ResponseLevel:
     """Normalised responses of one pyramid level.
 
     ``snr`` is the best SNR over the scales (float32 (h, w)); ``per_scale`` holds each scale's
-    SNR map (index into :data:`INNER_SIDES`) and ``spread`` the response spread it was divided
-    by (a number, or a map with ``adaptive``); ``outer`` is the mean of the signed image over
-    the outer box.
+    SNR map, ``sides`` its inner box side, ``radius`` its full-resolution radius (px) and
+    ``spread`` the response spread it was divided by (grey levels: a number, or a map with
+    ``adaptive``); ``outer`` is the sum of the signed image over the outer box (uint16).
     """
 
     level: int
     snr: np.ndarray
     per_scale: list[np.ndarray]
+    sides: tuple[int, ...]
+    radius: tuple[float, ...]
     spread: list
     outer: np.ndarray
-
-
-def scale_radius(level: int | np.ndarray, scale_index: int | np.ndarray) -> np.ndarray:
-    """Full-resolution radius (px) matched by ``INNER_SIDES[scale_index]`` at ``level``."""
-    r = np.asarray([_RADIUS_OF_SIDE[s] for s in INNER_SIDES])[np.asarray(scale_index)]
-    return r * (2.0 ** np.asarray(level))
 
 
 def informative(img: np.ndarray) -> np.ndarray:
@@ -131,20 +142,37 @@ def signed_image(image: np.ndarray, polarity: int) -> np.ndarray:
     return image if polarity > 0 else cv2.bitwise_not(image)
 
 
-def level_range(min_radius: float, max_radius: float) -> range:
-    """Pyramid levels whose scales cover ``[min_radius, max_radius]`` (full-resolution px)."""
-    rs = [_RADIUS_OF_SIDE[s] for s in INNER_SIDES]
-    lo_r, hi_r = min(rs), max(rs)
-    # A level covers about [lo_r/1.4, hi_r*1.4] x 2**level.
-    lo, hi = lo_r / 1.4, hi_r * 1.4
-    first = max(0, int(np.floor(np.log2(max(min_radius, 1e-3) / lo))))
-    last = max(0, int(np.ceil(np.log2(max(max_radius, 1e-3) / hi))))
-    first = min(first, last)
-    return range(first, last + 1)
+def detection_scales(min_radius: float, max_radius: float) -> dict[int, tuple[int, ...]]:
+    """``{level: inner box sides}`` of the scales covering ``[min_radius, max_radius]`` (px).
+
+    A scale of radius ``r`` covers blobs of radius ``r / 1.6 .. r * 1.6``.
+    """
+    out: dict[int, tuple[int, ...]] = {}
+    level = _FIRST_LEVEL
+    while True:
+        sides = _FIRST_SIDES if level == _FIRST_LEVEL else _SIDES
+        keep = tuple(s for s in sides
+                     if _radius_of_side(s, level) * 1.6 >= min_radius and _radius_of_side(s, level) / 1.6 <= max_radius)
+        if keep:
+            out[level] = keep
+        if _radius_of_side(sides[-1], level) / 1.6 > max_radius or level > 12:
+            break
+        level += 1
+    if not out:
+        out[_FIRST_LEVEL] = _FIRST_SIDES[-1:]
+    return out
+
+
+def refine_level(radius: np.ndarray | float) -> np.ndarray:
+    """Pyramid level on which a blob of ``radius`` (full-resolution px) is fitted: the finest
+    where its radius is at most :data:`MAX_REFINE_RADIUS` px."""
+    r = np.maximum(np.asarray(radius, float), 1e-6)
+    return np.clip(np.ceil(np.log2(r / MAX_REFINE_RADIUS)), 0, None).astype(np.int64)
 
 
 def pyramid(image: np.ndarray, levels: int) -> list[np.ndarray]:
-    """``[image, pyrDown(image), ...]`` with ``levels`` entries (uint8)."""
+    """``[image, pyrDown(image), ...]`` with up to ``levels`` entries (uint8); stops when a level
+    would be smaller than twice the outer box."""
     out = [image]
     for _ in range(levels - 1):
         prev = out[-1]
@@ -179,7 +207,7 @@ def _robust_spread(resp: np.ndarray, valid: np.ndarray, adaptive: bool, floor: f
     return cv2.resize(med, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
 
 
-def responses(img: np.ndarray, level: int, *, adaptive: bool = False) -> ResponseLevel:
+def responses(img: np.ndarray, level: int, sides: tuple[int, ...], *, adaptive: bool = False) -> ResponseLevel:
     """Normalised centre-surround responses of one pyramid level image (uint8, blobs bright).
 
     Parameters
@@ -187,7 +215,9 @@ def responses(img: np.ndarray, level: int, *, adaptive: bool = False) -> Respons
     img : uint8 (h, w)
         The signed image at this level.
     level : int
-        Pyramid level (only recorded).
+        Pyramid level (for the radii).
+    sides : tuple of int
+        Inner box sides (odd).
     adaptive : bool
         Estimate the response spread per tile instead of over the whole image.
 
@@ -196,81 +226,82 @@ def responses(img: np.ndarray, level: int, *, adaptive: bool = False) -> Respons
     ResponseLevel
     """
     n_out = OUTER_SIDE * OUTER_SIDE
-    outer = cv2.boxFilter(img, cv2.CV_32F, (OUTER_SIDE, OUTER_SIDE), borderType=cv2.BORDER_REFLECT)
+    outer = cv2.boxFilter(img, cv2.CV_16U, (OUTER_SIDE, OUTER_SIDE), normalize=False,
+                          borderType=cv2.BORDER_REFLECT)
+    valid = informative(img[1::3, 1::3])
+    outer_sub = outer[1::3, 1::3].astype(np.float32) * (1.0 / n_out)
     per_scale = []
     spreads = []
-    valid = informative(img[1::3, 1::3])
-    for side in INNER_SIDES:
+    for side in sides:
         n_in = side * side
-        inner = cv2.boxFilter(img, cv2.CV_32F, (side, side), borderType=cv2.BORDER_REFLECT)
-        # inner - ring = c (inner - outer), with ring = (n_out outer - n_in inner) / (n_out - n_in)
+        if side == 1:
+            inner = img
+        else:
+            inner = cv2.boxFilter(img, cv2.CV_16U, (side, side), normalize=False, borderType=cv2.BORDER_REFLECT)
+        # inner mean - ring mean = c (inner mean - outer mean)
         c = n_out / (n_out - n_in)
-        sub = c * (inner[1::3, 1::3] - outer[1::3, 1::3])
+        sub = c * (inner[1::3, 1::3].astype(np.float32) * (1.0 / n_in) - outer_sub)
         floor = _MIN_PIXEL_NOISE * np.sqrt(1.0 / n_in + 1.0 / (n_out - n_in))
         spread = _robust_spread(sub, valid, adaptive, floor, img.shape)
         if isinstance(spread, np.ndarray):
-            snr = cv2.addWeighted(inner, c, outer, -c, 0.0)
+            snr = cv2.addWeighted(inner, c / n_in, outer, -c / n_out, 0.0, dtype=cv2.CV_32F)
             snr /= spread
         else:
-            snr = cv2.addWeighted(inner, c / spread, outer, -c / spread, 0.0)
+            snr = cv2.addWeighted(inner, c / n_in / spread, outer, -c / n_out / spread, 0.0, dtype=cv2.CV_32F)
         per_scale.append(snr)
         spreads.append(spread)
     best = per_scale[0]
     for other in per_scale[1:]:
         best = cv2.max(best, other)
-    return ResponseLevel(level=level, snr=best, per_scale=per_scale, spread=spreads, outer=outer)
+    return ResponseLevel(level=level, snr=best, per_scale=per_scale, sides=tuple(sides),
+                         radius=tuple(_radius_of_side(s, level) for s in sides), spread=spreads, outer=outer)
 
 
-def find_candidates(levels: list[ResponseLevel], *, min_snr: float, min_radius: float,
-                    max_radius: float, polarity: int, min_weber: float = 0.0,
-                    max_candidates: int = 4000) -> Candidates:
-    """Local maxima (3x3) of each level's best SNR above ``min_snr``, then non-maximum
-    suppression between scales and levels (see :func:`_suppress`).
+def find_candidates(levels: list[ResponseLevel], *, min_snr: float, polarity: int, min_weber: float = 0.0,
+                    max_candidates: int = 20000) -> Candidates:
+    """Local maxima of every scale's SNR map above ``min_snr`` and with a rough Weber
+    contrast of at least ``min_weber``.
 
-    Candidates whose scale radius is far outside ``[min_radius, max_radius]`` are dropped (the
-    final radius test is on the fitted ellipse), and so are those whose rough Weber contrast
-    is below ``min_weber``. At most ``max_candidates`` (the strongest) are kept.
+    Maxima are taken per scale, not of the best response over the scales: a dot on a dark
+    band (an eyebrow, a lip line) is a maximum at its own scale even where the band's bigger
+    scale responds more. The neighbourhood is 3x3 for inner sides up to 3 px and 5x5 for
+    bigger ones (one maximum per blob top). The rough Weber contrast is the response over the
+    outer box's mean grey level in the original image (for white blobs: the smaller of that
+    and the headroom to 255): paint is a large relative change, skin texture a small one.
+    Maxima of different scales are all kept; duplicates are resolved by the ring test and
+    after the fit. At most ``max_candidates`` (the strongest) are kept.
     """
-    xs, ys, ls, rs, ss, ws = [], [], [], [], [], []
+    xs, ys, ls, rs, ss = [], [], [], [], []
     for lv in levels:
-        snr = lv.snr
-        h, w = snr.shape
-        flat = snr.ravel()
-        above = np.flatnonzero(snr > min_snr)
-        yy, xx = np.divmod(above, w)
-        inner = (yy > 0) & (yy < h - 1) & (xx > 0) & (xx < w - 1)
-        pk = above[inner]
-        v = flat[pk]
-        is_max = np.ones(len(pk), bool)
-        for off in (-w - 1, -w, -w + 1, -1, 1, w - 1, w, w + 1):
-            is_max &= v >= flat[pk + off]
-        pk = pk[is_max]
-        if len(pk) == 0:
+        h, w = lv.snr.shape
+        if h < 3 or w < 3:
             continue
-        yy, xx = np.divmod(pk, w)
-        vals = np.stack([m.ravel()[pk] for m in lv.per_scale], axis=1)
-        sc = np.argmax(vals, axis=1)
-        r = scale_radius(lv.level, sc)
-        best = vals[np.arange(len(pk)), sc]
-        spread = np.stack([sp.ravel()[pk] if isinstance(sp, np.ndarray) else np.full(len(pk), sp)
-                           for sp in lv.spread], axis=1)[np.arange(len(pk)), sc]
-        outer = lv.outer.ravel()[pk]
-        bg = outer if polarity > 0 else 255.0 - outer
-        weber = best * spread / np.maximum(bg, 1.0)
-        keep = (r * 1.6 >= min_radius) & (r / 1.6 <= max_radius) & (weber >= min_weber)
-        ws.append(weber[keep].astype(np.float64))
-        xs.append(xx[keep])
-        ys.append(yy[keep])
-        ls.append(np.full(int(keep.sum()), lv.level))
-        rs.append(r[keep])
-        ss.append(vals[keep, sc[keep]].astype(np.float64))
+        outer = lv.outer.ravel()
+        for m, side, r, spread in zip(lv.per_scale, lv.sides, lv.radius, lv.spread):
+            k = 3 if side <= 3 else 5
+            peak = (m >= cv2.dilate(m, np.ones((k, k), np.uint8))) & (m > min_snr)
+            peak[0], peak[-1], peak[:, 0], peak[:, -1] = False, False, False, False
+            pk = np.flatnonzero(peak)
+            if len(pk) == 0:
+                continue
+            val = m.ravel()[pk].astype(np.float64)
+            if min_weber > 0:
+                bg = outer[pk] * (1.0 / (OUTER_SIDE * OUTER_SIDE))
+                bg = np.minimum(bg, 255.0 - bg) if polarity > 0 else 255.0 - bg
+                sp = spread.ravel()[pk] if isinstance(spread, np.ndarray) else spread
+                ok = val * sp >= min_weber * np.maximum(bg, 1.0)
+                pk, val = pk[ok], val[ok]
+            yy, xx = np.divmod(pk, w)
+            xs.append(xx)
+            ys.append(yy)
+            ls.append(np.full(len(pk), lv.level))
+            rs.append(np.full(len(pk), r))
+            ss.append(val)
     if not xs:
         z = np.zeros(0, np.int64)
-        return Candidates(z, z, z, np.zeros(0), np.zeros(0), np.zeros(0))
+        return Candidates(z, z, z, np.zeros(0), np.zeros(0))
     cand = Candidates(np.concatenate(xs).astype(np.int64), np.concatenate(ys).astype(np.int64),
-                      np.concatenate(ls).astype(np.int64), np.concatenate(rs), np.concatenate(ss),
-                      np.concatenate(ws))
-    cand = _suppress(cand)
+                      np.concatenate(ls).astype(np.int64), np.concatenate(rs), np.concatenate(ss))
     if len(cand) > max_candidates:
         top = np.argsort(-cand.snr, kind="stable")[:max_candidates]
         top.sort()
@@ -278,32 +309,95 @@ def find_candidates(levels: list[ResponseLevel], *, min_snr: float, min_radius: 
     return cand
 
 
-def _suppress(cand: Candidates) -> Candidates:
-    """Non-maximum suppression within each pyramid level.
+@dataclass
+class RingTest:
+    """Contrast of each candidate against a ring of pixels around it (see :func:`ring_test`).
 
-    A candidate is dropped when one with a higher SNR lies closer than 0.8 x the larger of
-    their radii, at the same pyramid level (a second maximum on the plateau of a blob; two
-    separate dots are at least the sum of their radii apart) or at an adjacent scale (radii
-    within a factor 1.5: the same blob seen twice). Candidates of clearly different scales are
-    kept: a dot on an eyebrow is a small blob inside a big one. Remaining duplicates are
-    resolved after fitting (:func:`carapost.core.blobs.analyse_blobs`).
+    Attributes
+    ----------
+    centre : float64 (N,)
+        Mean of the signed image over the candidate's inner box (grey levels).
+    ring : float64 (N, K)
+        Signed image on the ring, sorted ascending (grey levels).
+    noise : float64 (N,)
+        Pixel noise of the candidate's pyramid level (grey levels).
+    polarity : int
     """
-    from scipy.spatial import cKDTree
 
-    if len(cand) < 2:
-        return cand
-    s = 2.0 ** cand.level
-    pts = np.stack([cand.x * s, cand.y * s], axis=1)
-    pairs = cKDTree(pts).query_pairs(r=float(0.8 * cand.radius.max()), output_type="ndarray")
-    if len(pairs) == 0:
-        return cand
-    i, j = pairs[:, 0], pairs[:, 1]
-    d = np.linalg.norm(pts[i] - pts[j], axis=1)
-    ri, rj = cand.radius[i], cand.radius[j]
-    similar = (cand.level[i] == cand.level[j]) | (np.maximum(ri, rj) <= 1.5 * np.minimum(ri, rj))
-    hit = (d < 0.8 * np.maximum(ri, rj)) & similar
-    i, j = i[hit], j[hit]
-    loser = np.where(cand.snr[i] >= cand.snr[j], j, i)
-    keep = np.ones(len(cand), bool)
-    keep[loser] = False
-    return cand.subset(np.flatnonzero(keep))
+    centre: np.ndarray
+    ring: np.ndarray
+    noise: np.ndarray
+    polarity: int
+
+    def contrast(self, q: float) -> np.ndarray:
+        """``centre`` minus the ``q`` quantile of the ring (grey levels)."""
+        k = int(round(q * (self.ring.shape[1] - 1)))
+        return self.centre - self.ring[:, k]
+
+    def background(self) -> np.ndarray:
+        """Median of the ring in the original image's grey levels; for white blobs the
+        smaller of that and the headroom to 255 (the room a white dot has)."""
+        k = (self.ring.shape[1] - 1) // 2
+        bg = 0.5 * (self.ring[:, k] + self.ring[:, k + 1])
+        return np.minimum(bg, 255.0 - bg) if self.polarity > 0 else 255.0 - bg
+
+
+_RING_N = 12
+_RING_ANG = np.linspace(0.0, 2 * np.pi, _RING_N, endpoint=False)
+
+
+def ring_test(pyr: list[np.ndarray], levels: list[ResponseLevel], cand: Candidates, noise: dict[int, float],
+              polarity: int) -> RingTest:
+    """Inner-box mean and ring samples of every candidate on its detection level.
+
+    The ring has 12 samples at ``1.5 r + 1.5`` px around the candidate (``r`` the radius of
+    its scale at that level): outside a blob of that scale, so a blob has the whole ring
+    below its centre, an edge only half of it, and a scale much smaller than the blob a ring
+    inside the blob (no contrast).
+
+    Parameters
+    ----------
+    pyr : list of uint8 arrays
+        Pyramid of the signed image.
+    levels : list of ResponseLevel
+        The responses the candidates came from.
+    cand : Candidates
+    noise : dict of int to float
+        Pixel noise per level (filled in when missing).
+    polarity : int
+    """
+    n = len(cand)
+    centre = np.zeros(n)
+    ring = np.zeros((n, _RING_N))
+    nz = np.zeros(n)
+    n_out = OUTER_SIDE * OUTER_SIDE
+    for lv in levels:
+        k = lv.level
+        sel = np.flatnonzero(cand.level == k)
+        if len(sel) == 0:
+            continue
+        img = pyr[k]
+        H, W = img.shape
+        if k not in noise:
+            noise[k] = pixel_noise(img)
+        cx, cy = cand.x[sel], cand.y[sel]
+        flat = cy * W + cx
+        # inner mean = response / c + outer mean (the response is inner mean - ring mean).
+        side = np.zeros(len(sel))
+        resp = np.zeros(len(sel))
+        for si, (sd, r) in enumerate(zip(lv.sides, lv.radius)):
+            m = cand.radius[sel] == r
+            if not m.any():
+                continue
+            sp = lv.spread[si]
+            sp = sp.ravel()[flat[m]] if isinstance(sp, np.ndarray) else sp
+            resp[m] = lv.per_scale[si].ravel()[flat[m]] * sp
+            side[m] = sd
+        c = n_out / (n_out - side * side)
+        centre[sel] = resp / c + lv.outer.ravel()[flat] * (1.0 / n_out)
+        rho = 1.5 * cand.radius[sel] / 2.0 ** k + 1.5
+        rr = np.clip(np.rint(cy[:, None] + rho[:, None] * np.sin(_RING_ANG)[None]).astype(np.int64), 0, H - 1)
+        cc = np.clip(np.rint(cx[:, None] + rho[:, None] * np.cos(_RING_ANG)[None]).astype(np.int64), 0, W - 1)
+        ring[sel] = np.sort(img[rr, cc].astype(np.float64), axis=1)
+        nz[sel] = noise[k]
+    return RingTest(centre=centre, ring=ring, noise=nz, polarity=polarity)

@@ -1,31 +1,34 @@
-"""Per-candidate stage of the blob detector: background, boundary, ellipse and centre.
+"""Per-candidate stage of the blob detector: level search, local background, ellipse, centre.
 
 All candidates of one group (same pyramid level and patch size) are processed together on a
-stack of square patches ``(N, S, S)``; nothing loops over candidates in Python.
+stack of square patches ``(N, S, S)``; nothing loops over candidates in Python. Morphology
+and connectivity run on a "mosaic" of the patches (stacked with blank rows between them) in
+single OpenCV calls.
 
-For each candidate:
+For each candidate (signed image: the blob is bright):
 
-1. **Background.** A plane is fitted to the ring of the patch outside the expected blob;
-   ``d = patch - plane`` is the blob signal. Candidates whose peak is below 2 sigma of the
-   ring's residual stop here.
-2. **Boundary.** The contrast ``C`` is the peak of the 3x3-smoothed ``d`` near the candidate;
-   the blob is the 8-connected component of ``d >= C/2`` (half contrast) containing the peak.
-   Components of other blobs in the patch are excluded from everything that follows. If the
-   component reaches the patch border, the level is walked down from ``0.9 C``: the region
-   just before it merges with its surround (its area jumps) is the blob, and a thin ring
-   around it is its background (a dot on an eyebrow or a lip line). Otherwise the blob is
-   flagged ``border`` (the caller retries with a bigger patch) and rejected.
-3. **Background again**: a robust quadratic surface (skin curvature, shading) fitted to every
-   pixel at least 2 px away from the blob and from other components (black or clipped pixels
-   left out when enough others remain); then the contrast and the boundary again.
-4. **Ellipse and centre** from the soft half-contrast region
-   ``q = clip(1.5 (d/C - 1/2) + 1/2, 0, 1)``: its centroid is the centre (noise enters only
-   through the edge pixels; blur is symmetric and does not move it); its second moments give
-   the covariance ``Sigma``, and a uniform ellipse has ``Sigma = diag(a^2, b^2) / 4``, so the
+1. **Ring background.** A plane is fitted (robustly) to the ring of the patch outside the
+   expected blob; ``d0 = patch - plane``. The peak ``P`` is the largest 3x3 mean of ``d0``
+   near the candidate.
+2. **Level search.** The flood level ``L`` of every pixel — the highest level ``t`` at which
+   it is still connected to the peak through pixels of ``d0 >= t`` — is computed once by
+   morphological reconstruction (repeated 3x3 dilation clipped by the smoothed patch). The
+   component of the peak at level ``f P`` is ``L >= f P``, so all levels come for free. The
+   *core* is the component at the lowest level ``f`` in 0.5 .. 0.9 that is still a blob:
+   not touching the patch border, not bigger than the largest allowed blob, and not having
+   just merged with something (its area more than doubles from the level above). At half
+   contrast a dot on an eyebrow or a lip line joins the band; a few levels up it is alone.
+3. **Local background.** A plane fitted (robustly) to a thin band 2-4 px around the core,
+   leaving out other bright structures: the dot's own surround (skin, or the band it sits on,
+   or both across the band's edge). ``d = patch - plane``; the contrast ``C`` is the peak of
+   the 3x3 mean of ``d`` in the core.
+4. **Ellipse and centre** from the soft half-contrast region ``q = clip(1.5 (d/C - 1/2) +
+   1/2, 0, 1)`` around the core: its centroid is the centre (noise enters only through the
+   edge pixels; blur is symmetric and does not move it); its second moments give the
+   covariance ``Sigma``, and a uniform ellipse has ``Sigma = diag(a^2, b^2) / 4``, so the
    semi-axes are ``2 sqrt(eig(Sigma))``.
-5. **Shape measurements** for the classifier: area mismatch with the moment ellipse, central
-   asymmetry, residual around the elliptical radial profile (a clean projected dot is a
-   blurred ellipse; two merged dots, or a dot cut by an occluding edge, are not).
+5. **Shape measurements** for the classifier (:mod:`carapost.core.blob_score`): mismatch with
+   the moment ellipse, central asymmetry, residual around the elliptical radial profile.
 """
 
 from __future__ import annotations
@@ -35,24 +38,38 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["PatchFit", "fit_patches", "patch_half_size"]
+from .blob_score import asymmetry, profile_rms, shape_residual
+
+__all__ = ["PatchFit", "fit_patches", "patch_half_size", "LEVELS"]
 
 #: Signed-image levels at or below / at or above which a pixel is black or clipped.
 _FLAT_LO, _FLAT_HI = 4, 251
-#: Candidates whose peak (3x3 mean) is below this many ring noise sigmas are not fitted.
-_EARLY_CNR = 2.0
-_SEP = 5  # zero rows between patches in a mosaic (> the largest dilation radius)
-#: Levels (fractions of the contrast over the surround, walked down) tried when the
-#: half-contrast region runs into the patch border; the area growth between two levels that
-#: means "merged with the surround"; the outer radius (px) of the thin ring then used as the
-#: blob's local background.
-_LOCAL_LEVELS = (0.9, 0.8, 0.7, 0.6, 0.5)
-_JUMP = 1.6
-_LOCAL_RING = 4
-#: Slope of the soft half-contrast region ``q = clip(RAMP (d/C - 1/2) + 1/2, 0, 1)``: 1 is the
-#: plain coverage fraction, large values a hard threshold. 1.5 gave the smallest centre errors
-#: on rendered dots (noise enters only through the edge pixels; no pixelation).
+_SEP = 5  # blank rows between patches in a mosaic (> the largest dilation radius)
+#: Levels (fractions of the peak over the ring background) searched for the blob's core.
+LEVELS = (0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95)
+#: A level's component is a blob while its area is at least this fraction of its moment
+#: ellipse's (1 for an ellipse; a dot that has started to flood a band is elongated or
+#: irregular) ...
+_MIN_FILL = 0.9
+#: ... a test made only on components of at least this many pixels, and at levels at least
+#: this many noise sigmas (of the 3x3 mean) below the peak.
+_FILL_MIN_AREA = 20
+_TOP_NOISE = 4.0
+#: ... and not above this level (the top of a flat, clipped or JPEG-coded dot is ragged).
+_MAX_SHAPED_LEVEL = 0.8
+#: Inner and outer radius (px) of the band around the core used as local background.
+_BAND = (2, 4)
+#: Largest fraction of a white blob's surround (2 px) that may be clipped at 255.
+_MAX_SATURATED_RIM = 0.3
+#: Slope of the soft half-contrast region ``q = clip(RAMP (d/C - 1/2) + 1/2, 0, 1)``.
 _RAMP = 1.5
+#: Fixed-point scale of the flood levels (int16; the peak is ``_FP``).
+_FP = 1000
+#: Trimmed moments: iterations, and the distance (px) beyond the moment ellipse from which
+#: the region is dropped.
+_TRIM_ITERS = 3
+_TRIM_MARGIN = 1.0
+DEBUG: dict | None = None
 
 
 @dataclass
@@ -68,32 +85,37 @@ class PatchFit:
     angle : float64 (N,)
         Major-axis direction, radians from +x towards +y, in (-pi/2, pi/2].
     contrast : float64 (N,)
-        Peak blob signal above the background (grey levels).
+        Peak blob signal above the local background (grey levels).
     background : float64 (N,)
-        Background level of the (signed) level image at the centre (grey levels).
+        Local background level of the (signed) level image at the centre (grey levels).
+    rise : float64 (N,)
+        Local background minus the ring background at the centre, over the contrast: how far
+        the blob stands on a band brighter than its wider surround (an eyebrow, a lip line).
     noise : float64 (N,)
-        Standard deviation of the background residual around the blob (grey levels).
-    shape_residual : float64 (N,)
-        Mismatch between the half-contrast region and its moment ellipse (fraction of area).
-    offset : float64 (N,)
-        Distance between the intensity centroid and the half-contrast region's centroid,
-        divided by the major semi-axis.
+        Standard deviation of the local background residual (grey levels).
+    ring_noise : float64 (N,)
+        Standard deviation of the ring background residual (grey levels).
+    core_level : float64 (N,)
+        The level (fraction of the peak over the ring) of the core (:data:`LEVELS`).
+    area_ratio : float64 (N,)
+        Area of the core's component at the next level up over the core's area.
+    shape_residual, asymmetry, profile_rms : float64 (N,)
+        See :mod:`carapost.core.blob_score`.
     area : float64 (N,)
         Area of the soft half-contrast region (level px^2).
-    asymmetry : float64 (N,)
-        Mismatch between the half-contrast region and its point reflection about the centre,
-        as a fraction of its area (0 for any centrally symmetric blob: an ellipse; high for a
-        dot cut by an occluding edge or merged with a different one).
-    profile_rms : float64 (N,)
-        RMS (grey levels) of the blob signal around its elliptical profile: the mean of the
-        signal over pixels at the same normalised elliptical radius, in 0.35 px bins, out to
-        2.5 px beyond the boundary. A blurred ellipse is (nearly) a function of that radius,
-        so only noise remains; a merged or cut blob leaves structure.
     ok : bool (N,)
-        False where the candidate is rejected outright (no blob, touches the patch border,
-        masked or saturated pixels in or around it, degenerate background).
+        False where the candidate is rejected outright (no peak, no isolated core, masked or
+        saturated pixels in or around it, degenerate background).
     border : bool (N,)
-        The blob's half-contrast region reached the patch border (the patch may be too small).
+        Even the highest level's component reached the patch border or the size limit (the
+        patch may be too small: a blob bigger than its candidate's scale).
+    open : float64 (N,)
+        The dot's contrast against its surround in its weakest direction, as a fraction of its
+        full contrast (1 on clean skin, near 0 where it merges with something as dark).
+    kept : float64 (N,)
+        Fraction of the soft region kept by the trimming (1 for a clean ellipse).
+    saturated : float64 (N,)
+        Fraction of the blob's 2 px surround that is clipped (white blobs).
     """
 
     x: np.ndarray
@@ -103,33 +125,65 @@ class PatchFit:
     angle: np.ndarray
     contrast: np.ndarray
     background: np.ndarray
+    rise: np.ndarray
     noise: np.ndarray
+    ring_noise: np.ndarray
+    core_level: np.ndarray
+    area_ratio: np.ndarray
     shape_residual: np.ndarray
-    offset: np.ndarray
-    area: np.ndarray
     asymmetry: np.ndarray
     profile_rms: np.ndarray
+    area: np.ndarray
     ok: np.ndarray
     border: np.ndarray
 
+    open: np.ndarray
+    kept: np.ndarray
+    saturated: np.ndarray
+
+    @classmethod
+    def empty(cls, n: int) -> "PatchFit":
+        f = {k: np.zeros(n) for k in cls.__dataclass_fields__ if k not in ("ok", "border")}
+        return cls(**f, ok=np.zeros(n, bool), border=np.zeros(n, bool))
+
 
 #: Patch half sizes: a few classes, so that candidates are fitted in few large batches.
-_HALF_SIZES = np.array([9, 13, 17, 25, 33, 49, 65])
+_HALF_SIZES = np.array([8, 11, 14, 18, 25, 33, 49, 65])
 
 
 def patch_half_size(radius: np.ndarray | float) -> np.ndarray:
     """Half side of the patches used for blobs of ``radius`` px (at the patch's level): at
-    least ``1.6 radius + 4``, rounded up to one of a few classes."""
-    need = np.ceil(1.6 * np.asarray(radius, float) + 4.0)
+    least ``1.5 radius + 5``, rounded up to one of a few classes."""
+    need = np.ceil(1.5 * np.asarray(radius, float) + 5.0)
     k = np.searchsorted(_HALF_SIZES, need)
     return np.where(k < len(_HALF_SIZES), _HALF_SIZES[np.minimum(k, len(_HALF_SIZES) - 1)], need).astype(int)
 
 
-def _mosaic(mask: np.ndarray) -> np.ndarray:
-    """Stack ``(N, S, S)`` masks vertically with ``_SEP`` zero rows between them (uint8)."""
-    n, s, _ = mask.shape
-    mos = np.zeros((n, s + _SEP, s), np.uint8)
-    mos[:, :s] = mask
+#: Largest ``M * P * k`` of one product in :func:`_dot` (OpenBLAS runs GEMMs up to 4 x 65536
+#: multiply-adds on the calling thread only).
+_DOT_CHUNK = 200_000
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` for a tall ``a (M, P)`` and a thin ``b (P, k)``, in row blocks small enough
+    that a multi-threaded BLAS keeps each product on the calling thread: waking its threads
+    for these skinny products costs more CPU time than computing them, and competes with
+    :func:`carapost.core.detect_range.detect_frames`' own threads."""
+    m, p = a.shape
+    rows = max(1, _DOT_CHUNK // max(p * b.shape[1], 1))
+    if m <= rows:
+        return a @ b
+    out = np.empty((m, b.shape[1]), np.result_type(a, b))
+    for i in range(0, m, rows):
+        np.matmul(a[i:i + rows], b, out=out[i:i + rows])
+    return out
+
+
+def _mosaic(a: np.ndarray, fill: float = 0) -> np.ndarray:
+    """Stack ``(N, S, S)`` patches vertically with ``_SEP`` rows of ``fill`` between them."""
+    n, s, _ = a.shape
+    mos = np.full((n, s + _SEP, s), fill, a.dtype if a.dtype != bool else np.uint8)
+    mos[:, :s] = a
     return mos.reshape(n * (s + _SEP), s)
 
 
@@ -137,11 +191,12 @@ def _unmosaic(mos: np.ndarray, n: int, s: int) -> np.ndarray:
     return mos.reshape(n, s + _SEP, s)[:, :s]
 
 
-_KERNELS = {r: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)) for r in (1, 2, 4)}
+_KERNELS = {r: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)) for r in (1, 2, 3, 4)}
+_K3 = np.ones((3, 3), np.uint8)
 
 
 def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
-    """Dilate each ``(S, S)`` mask of a stack by a disc of radius ``r`` (1, 2 or 4) px."""
+    """Dilate each ``(S, S)`` mask of a stack by a disc of radius ``r`` (1..4) px."""
     n, s, _ = mask.shape
     if n == 0:
         return mask.copy()
@@ -149,32 +204,36 @@ def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
 
 
 def _box3(d: np.ndarray) -> np.ndarray:
-    """3x3 mean of each ``(S, S)`` patch of a stack (values on the patch edge are approximate:
-    they are never used as peaks)."""
+    """3x3 mean of each ``(S, S)`` float32 patch of a stack (edge values approximate)."""
     n, s, _ = d.shape
     if n == 0:
         return d.copy()
-    mos = np.zeros((n, s + _SEP, s), np.float32)
-    mos[:, :s] = d
-    out = cv2.blur(mos.reshape(n * (s + _SEP), s), (3, 3), borderType=cv2.BORDER_CONSTANT)
-    return out.reshape(n, s + _SEP, s)[:, :s]
+    out = cv2.blur(_mosaic(d), (3, 3), borderType=cv2.BORDER_CONSTANT)
+    return _unmosaic(out, n, s)
 
 
 _GRIDS: dict[int, tuple] = {}
 
 
 def _grid(half: int) -> tuple:
-    """Offsets ``dy, dx`` (int), their float32 copies and monomials of a patch (cached)."""
+    """Offsets ``dy, dx`` (int), their float32 copies, monomials and border mask (cached)."""
     g = _GRIDS.get(half)
     if g is None:
         off = np.arange(-half, half + 1)
         dy, dx = np.meshgrid(off, off, indexing="ij")
         dxf, dyf = dx.astype(np.float32), dy.astype(np.float32)
-        g = (dy, dx, dxf, dyf, _monomials(dxf, dyf))
+        edge = (np.abs(dx) == half) | (np.abs(dy) == half)
+        g = (dy, dx, dxf, dyf, _monomials(dxf, dyf), edge)
         for a in g:
             a.flags.writeable = False
         _GRIDS[half] = g
     return g
+
+
+#: Exponents (i, j) of the monomials; the first six are the quadratic basis 1, x, y, xx, xy, yy.
+_MONO = [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2), (3, 0), (2, 1), (1, 2), (0, 3),
+         (4, 0), (3, 1), (2, 2), (1, 3), (0, 4)]
+_MONO_INDEX = {e: k for k, e in enumerate(_MONO)}
 
 
 def _monomials(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
@@ -183,16 +242,9 @@ def _monomials(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
     return np.stack([x ** i * y ** j for i, j in _MONO], axis=1).astype(np.float32)
 
 
-#: Exponents (i, j) of the monomials; the first six are the quadratic basis 1, x, y, xx, xy, yy.
-_MONO = [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2), (3, 0), (2, 1), (1, 2), (0, 3),
-         (4, 0), (3, 1), (2, 2), (1, 3), (0, 4)]
-_MONO_INDEX = {e: k for k, e in enumerate(_MONO)}
-_QUAD = _MONO[:6]
-
-
-def _background_fit(p: np.ndarray, mask: np.ndarray, mono: np.ndarray, *, quadratic: bool,
-                    iters: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Robust least-squares background (plane or quadratic surface) per patch.
+def _plane_fit(p: np.ndarray, mask: np.ndarray, mono: np.ndarray,
+               iters: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Robust least-squares plane per patch.
 
     Parameters
     ----------
@@ -200,62 +252,174 @@ def _background_fit(p: np.ndarray, mask: np.ndarray, mono: np.ndarray, *, quadra
     mask : bool (N, S, S)
         Pixels allowed in the fit.
     mono : float32 (S*S, 15)
-        Monomials of the patch offsets (:func:`_monomials`).
-    quadratic : bool
-        Fit ``1, x, y, x^2, xy, y^2`` (skin curvature, shading fall-off) instead of a plane;
-        the quadratic terms get a mild ridge so that a one-sided surround cannot make them
-        extrapolate wildly under the blob.
+        Monomials of the patch offsets.
     iters : int
         Reweighting passes: pixels beyond 2.5 sigma of the previous fit are dropped (lines,
-        edges, unresolved neighbours in the surround).
+        edges, unresolved neighbours).
 
     Returns
     -------
     resid : float32 (N, S, S)
-        ``p - background`` everywhere in the patch.
+        ``p - plane`` everywhere in the patch.
     sigma : float64 (N,)
         Standard deviation of the residual over the finally used pixels.
     n_used : float64 (N,)
         Number of pixels used in the final fit.
-    coef : float32 (N, 6)
-        Coefficients of ``1, x, y, x^2, xy, y^2`` (zeros for the quadratic terms of a plane).
+    coef : float32 (N, 3)
+        Coefficients of ``1, x, y``.
     """
     n, s, _ = p.shape
-    k = 6 if quadratic else 3
-    terms = _QUAD[:k]
-    pairs = [[_MONO_INDEX[(a[0] + b[0], a[1] + b[1])] for b in terms] for a in terms]
+    terms = _MONO[:3]
+    pairs = np.asarray([[_MONO_INDEX[(a[0] + b[0], a[1] + b[1])] for b in terms] for a in terms])
     pf = p.reshape(n, s * s)
-    bk = mono[:, :k]
+    bk = mono[:, :3]
     w = mask.reshape(n, s * s).astype(np.float32)
     resid = pf
     sigma = np.zeros(n)
     s0 = np.zeros(n)
-    coef = np.zeros((n, 6), np.float32)
+    c = np.zeros((n, 3), np.float32)
     for it in range(iters + 1):
-        m = (w @ mono).astype(np.float64)                      # (N, 15): sums of w * x^i y^j
+        m = _dot(w, mono[:, :6]).astype(np.float64)              # sums of w * (1, x, y, xx, xy, yy)
         s0 = m[:, 0]
-        A = m[:, np.asarray(pairs)]                            # (N, k, k)
-        diag = np.arange(k)
-        ridge = np.full(k, 1e-6)
-        if quadratic:
-            ridge[3:] = 0.05
-        A[:, diag, diag] += ridge[None] * np.maximum(A[:, diag, diag], 1e-6)
-        rhs = ((w * pf) @ bk).astype(np.float64)
+        A = m[:, pairs]                                       # (N, 3, 3)
+        A[:, [0, 1, 2], [0, 1, 2]] += 1e-6 * np.maximum(A[:, [0, 1, 2], [0, 1, 2]], 1e-6) + 1e-9
+        rhs = _dot(w * pf, bk).astype(np.float64)
         c = np.linalg.solve(A, rhs[..., None])[..., 0].astype(np.float32)
-        resid = pf - c @ bk.T
+        resid = pf - (c[:, 0:1] * bk[:, 0] + c[:, 1:2] * bk[:, 1] + c[:, 2:3] * bk[:, 2])  # c @ bk.T, no BLAS
         e2 = np.einsum("ij,ij->i", w * resid, resid, dtype=np.float64)
-        sigma = np.sqrt(e2 / np.maximum(s0 - k, 1.0))
-        coef[:, :k] = c
+        sigma = np.sqrt(e2 / np.maximum(s0 - 3, 1.0))
         if it < iters:
             lim = (2.5 * np.maximum(sigma, 0.3)).astype(np.float32)[:, None]
             w = w * (np.abs(resid) < lim)
     # Clipping at 2.5 sigma shrinks a Gaussian's std by ~0.94: undo that.
     scale = 0.94 if iters > 0 else 1.0
-    return resid.reshape(n, s, s), sigma / scale, s0, coef
+    return resid.reshape(n, s, s), sigma / scale, s0, c
+
+
+def _prefer_informative(mask: np.ndarray, dead: np.ndarray, min_count: int = 20) -> np.ndarray:
+    """``mask & ~dead`` for patches where that leaves at least ``min_count`` pixels and a third
+    of ``mask`` (a face next to a black background), else ``mask`` (a dot on a clipped card)."""
+    info = mask & ~dead
+    n_info = info.reshape(len(mask), -1).sum(axis=1)
+    enough = (n_info >= min_count) & (3 * n_info >= mask.reshape(len(mask), -1).sum(axis=1))
+    return np.where(enough[:, None, None], info, mask)
+
+
+def _flood(level: np.ndarray, pky: np.ndarray, pkx: np.ndarray, iters: int) -> np.ndarray:
+    """Flood levels ``L`` (int16 (N, S, S)) of each patch from its peak pixel.
+
+    ``L(p)`` is the largest ``t`` such that ``p`` is 8-connected to the peak through pixels of
+    ``level >= t`` (morphological reconstruction by dilation of the peak under ``level``),
+    computed by ``iters`` rounds of 3x3 dilation clipped by ``level``: exact for pixels
+    reached by such a path within ``iters`` steps, an under-estimate beyond.
+    """
+    n, s, _ = level.shape
+    lo = np.iinfo(np.int16).min
+    mos_lvl = _mosaic(level, lo)
+    marker = np.full((n, s, s), lo, np.int16)
+    marker[np.arange(n), pky, pkx] = level[np.arange(n), pky, pkx]
+    mk = _mosaic(marker, lo)
+    for _ in range(iters):
+        mk = cv2.min(cv2.dilate(mk, _K3), mos_lvl)
+    return _unmosaic(mk, n, s)
+
+
+def _moments(q: np.ndarray, mono: np.ndarray) -> tuple:
+    """Centroid ``mx, my``, second central moments ``cxx, cxy, cyy`` and mass ``m0`` (N,) of
+    soft regions ``q (N, S, S)`` (offsets from the patch centre)."""
+    n = q.shape[0]
+    mom = _dot(q.reshape(n, -1), mono[:, :6]).astype(np.float64)
+    m0 = mom[:, 0]
+    m0s = np.maximum(m0, 1e-9)
+    mx, my = mom[:, 1] / m0s, mom[:, 2] / m0s
+    cxx = np.maximum(mom[:, 3] / m0s - mx * mx, 1e-6)
+    cxy = mom[:, 4] / m0s - mx * my
+    cyy = np.maximum(mom[:, 5] / m0s - my * my, 1e-6)
+    return mx, my, cxx, cxy, cyy, m0
+
+
+def _ellipse_distance(mx: np.ndarray, my: np.ndarray, cov: tuple, dxf: np.ndarray, dyf: np.ndarray) -> np.ndarray:
+    """Approximate signed distance (px, negative inside) of every patch pixel from the ellipse
+    of centre ``mx, my`` whose uniform-disc covariance is ``cov = (cxx, cxy, cyy)``."""
+    cxx, cxy, cyy = cov
+    det = np.maximum(cxx * cyy - cxy * cxy, 1e-9)
+    ia = (cyy / (4 * det)).astype(np.float32)[:, None, None]
+    ib = (-cxy / (4 * det)).astype(np.float32)[:, None, None]
+    ic = (cxx / (4 * det)).astype(np.float32)[:, None, None]
+    ux = dxf[None] - mx.astype(np.float32)[:, None, None]
+    uy = dyf[None] - my.astype(np.float32)[:, None, None]
+    r2 = ux * ux + uy * uy
+    rho2 = np.maximum(ia * ux * ux + 2 * ib * ux * uy + ic * uy * uy, 1e-12)
+    return np.sqrt(r2) - np.sqrt(r2 / rho2)
+
+
+#: Angular sectors of the local background, and the highest level (fraction of the dot's
+#: full contrast) a sector's background may take.
+_N_SECTORS = 8
+_MAX_SECTOR_LEVEL = 0.7
+
+
+def _diamond_angle(ux: np.ndarray, uy: np.ndarray) -> np.ndarray:
+    """A monotonic stand-in for the polar angle, in [0, 4) (0 along +x, 1 along +y, ...)."""
+    t = uy / np.maximum(np.abs(ux) + np.abs(uy), 1e-6)
+    return np.where(ux >= 0, np.where(uy >= 0, t, 4.0 + t), 2.0 - t)
+
+
+def _sector_background(d: np.ndarray, band: np.ndarray, need: np.ndarray, cx: np.ndarray, cy: np.ndarray,
+                       dxf: np.ndarray, dyf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Background of each patch as a function of the direction from ``cx, cy``.
+
+    ``d`` is the (smoothed) signal in units of the dot's full contrast. The ``band`` pixels
+    are split into :data:`_N_SECTORS` angular sectors; each sector's level is the highest
+    value of its band pixels (the structure right next to the dot on that side: a line
+    touching it rather than the skin beyond); sectors without band pixels take their
+    neighbours' value; levels are capped at :data:`_MAX_SECTOR_LEVEL`. Returns the background
+    ``(N, S, S)`` at the ``need`` pixels (interpolated linearly in angle; 0 elsewhere) and the
+    sector levels ``(N, K)``.
+    """
+    n = d.shape[0]
+    K = _N_SECTORS
+    b = np.zeros(d.shape, np.float32)
+    if n == 0:
+        return b, np.zeros((0, K))
+    S2 = d.shape[1] * d.shape[2]
+    sel = np.flatnonzero((band | need).ravel())
+    patch, pix = np.divmod(sel, S2)
+    ux = dxf.ravel()[pix] - cx.astype(np.float32)[patch]
+    uy = dyf.ravel()[pix] - cy.astype(np.float32)[patch]
+    ang = _diamond_angle(ux, uy) * (K / 4.0)                               # [0, K)
+    is_band = band.ravel()[sel]
+    key = patch[is_band] * K + np.minimum(ang[is_band].astype(np.int64), K - 1)
+    cnt = np.bincount(key, minlength=n * K)
+    level = np.full(n * K, -np.inf)
+    np.maximum.at(level, key, d.ravel()[sel[is_band]].astype(np.float64))
+    valid = (cnt >= 2).reshape(n, K)
+    level = np.where(valid, level.reshape(n, K), 0.0)
+    # Fill empty sectors from their neighbours (a few passes around the circle).
+    for _ in range(K // 2):
+        if valid.all():
+            break
+        left, right = np.roll(level, 1, axis=1), np.roll(level, -1, axis=1)
+        vl, vr = np.roll(valid, 1, axis=1), np.roll(valid, -1, axis=1)
+        fill = (left * vl + right * vr) / np.maximum(vl.astype(float) + vr, 1.0)
+        newly = ~valid & (vl | vr)
+        level = np.where(newly, fill, level)
+        valid = valid | newly
+    level = np.minimum(np.where(valid, level, 0.0), _MAX_SECTOR_LEVEL)
+    # Linear interpolation between sector centres.
+    is_need = need.ravel()[sel]
+    s = ang[is_need] - 0.5
+    k0 = np.floor(s).astype(np.int64)
+    f = (s - k0).astype(np.float32)
+    k0 %= K
+    lv = level.astype(np.float32).ravel()
+    base = patch[is_need] * K
+    b.ravel()[sel[is_need]] = (1.0 - f) * lv[base + k0] + f * lv[base + (k0 + 1) % K]
+    return b, level
 
 
 def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndarray, half: int, *,
-                bad: np.ndarray | None, saturated: tuple[int, int] | None) -> PatchFit:
+                polarity: int, max_radius: float, pixel_noise: float, bad: np.ndarray | None, saturated: tuple[int, int] | None) -> PatchFit:
     """Fit blobs around candidate pixels of one pyramid level image.
 
     Parameters
@@ -268,14 +432,19 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
         Candidate radius estimates (level px).
     half : int
         Patch half size; patches are ``(2 half + 1)`` square.
+    polarity : int
+        +1 (white blobs: ``img`` is the image) or -1 (black: ``img`` is ``255 - image``).
+    max_radius : float
+        Largest allowed blob radius (level px): bigger cores are not blobs.
+    pixel_noise : float
+        Pixel noise of ``img`` (grey levels).
     bad : bool (H, W) or None
         Pixels to ignore (user mask). A blob touching them is rejected.
     saturated : (lo, hi) or None
         Pixels of ``img`` with values in ``lo..hi`` are saturated pixels of the original
-        image (give it for white blobs). They carry no information: they are left out of the
-        background, and may only be inside the blob itself (an over-exposed white dot); a
-        blob next to a saturated region is rejected. Black blobs do not need it: a black dot
-        on a clipped white card is a perfectly good blob.
+        image (give it for white blobs). They are left out of the background and may only be
+        inside the blob itself (an over-exposed white dot); a blob next to a saturated region
+        is rejected. Black blobs do not need it: a black dot on a clipped white card is fine.
 
     Returns
     -------
@@ -284,132 +453,148 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
     H, W = img.shape
     n = len(cx)
     S = 2 * half + 1
-    dy, dx, dxf, dyf, mono = _grid(half)
-    basis = mono[:, :6]
+    dy, dx, dxf, dyf, mono, edge = _grid(half)
+    res = PatchFit.empty(n)
+    if n == 0:
+        return res
     # Flat pixel indices; patches crossing the image border are clamped (and marked outside).
     inside = (cx >= half) & (cx < W - half) & (cy >= half) & (cy < H - half)
     flat_idx = ((cy * W + cx)[:, None, None] + (dy * W + dx)[None]).astype(np.intp)
     outside = np.zeros((n, S, S), bool)
     if not inside.all():
-        edge = np.flatnonzero(~inside)
-        rows = cy[edge, None, None] + dy[None]
-        cols = cx[edge, None, None] + dx[None]
-        outside[edge] = (rows < 0) | (rows >= H) | (cols < 0) | (cols >= W)
-        flat_idx[edge] = np.clip(rows, 0, H - 1) * W + np.clip(cols, 0, W - 1)
+        e = np.flatnonzero(~inside)
+        rows = cy[e, None, None] + dy[None]
+        cols = cx[e, None, None] + dx[None]
+        outside[e] = (rows < 0) | (rows >= H) | (cols < 0) | (cols >= W)
+        flat_idx[e] = np.clip(rows, 0, H - 1) * W + np.clip(cols, 0, W - 1)
     pu = img.ravel()[flat_idx]
     p = pu.astype(np.float32)
     badp = outside if bad is None else outside | bad.ravel()[flat_idx]
     if saturated is None:
         satp = np.zeros_like(outside)
     else:
-        lo, hi = saturated
-        satp = ((pu >= lo) & (pu <= hi)) & ~outside
+        satp = (pu >= saturated[0]) & (pu <= saturated[1]) & ~outside
     # Black or clipped pixels (a dark background beyond the face's silhouette, a clipped
-    # card) carry no shading information: left out of the background when enough others remain.
+    # card) carry no shading information: left out of backgrounds when enough others remain.
     dead = (pu <= _FLAT_LO) | (pu >= _FLAT_HI)
     rho2 = (dxf * dxf + dyf * dyf)[None]
     r0 = radius.astype(np.float32)[:, None, None]
     in_disc = rho2 <= float(half * half)
     idx = np.arange(n)
 
-    # 1. Background from the ring outside the expected blob.
+    # 1. Ring background and peak.
     r_in = np.minimum(1.5 * r0 + 1.5, half - 1.5)
     ring = _prefer_informative((rho2 >= r_in * r_in) & in_disc & ~badp & ~satp, dead)
-    d, sig1, n1, _ = _background_fit(p, ring, mono, quadratic=False, iters=0)
-
-    # 2. Peak, contrast, half-contrast component.
-    ds = _box3(d)
-    near = rho2 <= np.maximum(1.5, 0.6 * r0) ** 2
+    d0, sig0, n0, c0 = _plane_fit(p, ring, mono, iters=1)
+    ds = _box3(d0)
+    near = rho2 <= np.maximum(1.5, 0.5 * r0) ** 2
     flat = np.where(near, ds, -np.inf).reshape(n, -1)
     pk = np.argmax(flat, axis=1)
-    c1 = flat[idx, pk].astype(np.float64)
+    peak = flat[idx, pk].astype(np.float64)
     pky, pkx = np.divmod(pk, S)
-    ok = (c1 > 0) & (n1 >= 8)
-    c1s = np.where(c1 > 0, c1, 1.0).astype(np.float32)[:, None, None]
-    ok0 = ok
-    M, others, ok, border = _component(d >= 0.5 * c1s, pky, pkx, ok0)
-    # A dot inside a darker band (an eyebrow, a lip line): at half contrast over the skin the
-    # band joins the dot. Walk the level down from near the peak; the dot's own region grows
-    # slowly (blur) until it merges with the band (the area jumps, or reaches the border). The
-    # region just above that level is the dot; its background is then the band around it,
-    # measured on a thin ring (``local``).
-    local = np.zeros(n, bool)
-    sel = np.flatnonzero(border & ok0)
-    if len(sel):
-        best = np.zeros((len(sel),) + M.shape[1:], bool)
-        best_o = np.zeros_like(best)
-        found = np.zeros(len(sel), bool)
-        prev_area = np.zeros(len(sel))
-        alive_w = np.ones(len(sel), bool)
-        for level in _LOCAL_LEVELS:
-            m2, o2, ok2, b2 = _component(d[sel] >= level * c1s[sel], pky[sel], pkx[sel], ok0[sel])
-            area = m2.reshape(len(sel), -1).sum(axis=1)
-            jump = b2 | ~ok2 | ((prev_area > 0) & (area > _JUMP * prev_area + 2))
-            take = alive_w & ~jump
-            best[take], best_o[take] = m2[take], o2[take]
-            found |= take
-            alive_w &= ~jump
-            prev_area = np.where(take, area, prev_area)
-        g = sel[found]
-        M[g], others[g], ok[g], border[g], local[g] = best[found], best_o[found], True, False, True
-
-    # Candidates without a clear peak above the ring's noise stop here (most texture maxima,
-    # the skin next to a blob of the other polarity).
-    res = PatchFit(**{k: np.zeros(n) for k in ("x", "y", "major", "minor", "angle", "contrast",
-                                              "background", "noise", "shape_residual", "offset",
-                                              "area", "asymmetry", "profile_rms")},
-                   ok=np.zeros(n, bool), border=np.zeros(n, bool))
-    alive = np.flatnonzero(ok & (c1 > _EARLY_CNR * sig1))
-    res.border[alive] = border[alive]
+    ok = (peak > 1.0 * sig0) & (peak > 0.5) & (n0 >= 8)
+    alive = np.flatnonzero(ok)
     if len(alive) == 0:
         return res
+
+    # 2. Level search on the flood levels (fixed point: the peak is _FP).
     n = len(alive)
     idx = np.arange(n)
-    p, badp, satp, dead, r0, M, others, ok, local = (
-        p[alive], badp[alive], satp[alive], dead[alive], r0[alive], M[alive], others[alive], ok[alive],
-        local[alive])
-    cx, cy = cx[alive], cy[alive]
+    p, pu, badp, satp, dead, ds, d0 = p[alive], pu[alive], badp[alive], satp[alive], dead[alive], ds[alive], d0[alive]
+    pky, pkx, peak, r0 = pky[alive], pkx[alive], peak[alive], r0[alive]
+    scale = (_FP / peak).astype(np.float32)[:, None, None]
+    lvl = np.clip(ds * scale, -30000, 30000).astype(np.int16)
+    L = _flood(lvl, pky, pkx, half + 4)
+    thr = (np.asarray(LEVELS) * _FP).astype(np.int16)                     # (K,)
+    K = len(LEVELS)
+    Lf = L.reshape(n, -1)
+    masks = (Lf[:, None, :] >= thr[None, :, None]).astype(np.float32)      # (n, K, S*S)
+    m = _dot(masks.reshape(n * K, -1), mono[:, :6]).reshape(n, K, 6).astype(np.float64)
+    area = m[..., 0]
+    a_s = np.maximum(area, 1.0)
+    vx = m[..., 3] / a_s - (m[..., 1] / a_s) ** 2 + 1.0 / 12.0
+    vy = m[..., 5] / a_s - (m[..., 2] / a_s) ** 2 + 1.0 / 12.0
+    vxy = m[..., 4] / a_s - m[..., 1] * m[..., 2] / (a_s * a_s)
+    # Area over the area of the moment ellipse (a uniform ellipse has Sigma = diag(a^2, b^2)/4).
+    fill = area / (4.0 * np.pi * np.sqrt(np.maximum(vx * vy - vxy * vxy, 1e-6)))
+    edge_max = Lf[:, edge.ravel()].max(axis=1)                             # (n,)
+    a_max = np.pi * (1.3 * max_radius + 2.0) ** 2
+    valid = (edge_max[:, None] < thr[None]) & (area <= a_max)
+    # The shape test only below the peak's noise band (a flat, noisy top is ragged).
+    noise_band = 1.0 - _TOP_NOISE * (pixel_noise / 3.0) / peak                # 3x3 mean: sigma / 3
+    shaped = np.asarray(LEVELS)[None] <= np.minimum(noise_band, _MAX_SHAPED_LEVEL)[:, None]
+    valid &= (fill >= _MIN_FILL) | (area < _FILL_MIN_AREA) | ~shaped
+    # The core is the lowest level from which every higher level is valid.
+    run = np.cumprod(valid[:, ::-1], axis=1)[:, ::-1].astype(bool)         # valid and all above
+    has = run[:, -1]
+    kc = np.where(has, np.argmax(run, axis=1), K - 1)
+    core = L >= thr[kc][:, None, None]
+    core_area = area[idx, kc]
+    above = np.minimum(kc + 1, K - 1)
+    area_ratio = np.where(kc < K - 1, area[idx, above] / np.maximum(core_area, 1.0), 1.0)
+    border = ~has
+    ok = has.copy()
 
-    # 3. Background from everything away from the blob and other blobs.
-    grown = _dilate(M, 2)
+    if DEBUG is not None:
+        DEBUG.update(dict(alive=alive, L=L, area=area, fill=fill, edge_max=edge_max, valid=valid, kc=kc, lvl=lvl, p=p, peak=peak,
+                          pky=pky, pkx=pkx, sig0=sig0[alive], half=half))
+    # 3. Local background: a plane on a thin band around the core, away from other bright
+    # structures (pixels above the core level not connected to it).
+    others = (lvl >= thr[kc][:, None, None]) & ~core
     oth1 = _dilate(others, 1)
-    bgmask = _prefer_informative(~grown & ~oth1 & ~badp & ~satp & in_disc, dead)
-    if local.any():
-        band = _dilate(M[local], _LOCAL_RING) & ~_dilate(M[local], 1)
-        bgmask[local] = band & ~oth1[local] & ~badp[local] & ~satp[local]
-    d, sigma, n2, plane = _background_fit(p, bgmask, mono, quadratic=True, iters=1)
-    ok &= n2 >= 12
-    ds = _box3(d)
-    flat = np.where(M, ds, -np.inf).reshape(n, -1)
-    pk2 = np.argmax(flat, axis=1)
-    c2 = flat[idx, pk2].astype(np.float64)
-    # A blob narrower than the 3x3 smoothing: use the raw peak if it is higher.
-    c2 = np.maximum(c2, np.where(M, d, -np.inf).reshape(n, -1).max(axis=1) * 0.9)
-    ok &= c2 > 0
-    c2s = np.where(c2 > 0, c2, 1.0).astype(np.float32)[:, None, None]
-    pky2, pkx2 = np.divmod(pk2, S)
-    M, others2, ok, border2 = _component(d >= 0.5 * c2s, pky2, pkx2, ok)
-    border2 |= res.border[alive]
-    others = others | others2
-    grown = _dilate(M, 2)
-    oth1 = _dilate(others, 1)
+    grown_in = _dilate(core, _BAND[0])
+    band = _dilate(core, _BAND[1]) & ~grown_in & ~oth1 & ~badp & ~satp
+    band = _prefer_informative(band, dead, min_count=10)
+    d, sigma, n_band, cb = _plane_fit(p, band, mono, iters=1)
+    few = n_band < 10
+    if few.any():
+        d[few], sigma[few], cb[few] = d0[few], sig0[alive][few], c0[alive][few]
+    dsb = _box3(d)
+    c_box = np.where(core, dsb, -np.inf).reshape(n, -1).max(axis=1)
+    c_raw = np.where(core, d, -np.inf).reshape(n, -1).max(axis=1)
+    C = np.maximum(c_box, 0.9 * c_raw).astype(np.float64)
+    ok &= C > 0
+    Cs = np.where(C > 0, C, 1.0).astype(np.float32)[:, None, None]
 
     # Rejections: masked pixels near the blob, saturation around it.
-    ok &= ~(grown & badp).any(axis=(1, 2))
-    sat_bad = satp & grown & ~M
-    ok &= ~sat_bad.any(axis=(1, 2))
-    ring_sat = (satp & in_disc & ~grown).sum(axis=(1, 2)) / max(int(in_disc.sum()), 1)
-    ok &= ring_sat < 0.05
+    win = _dilate(core, 3) & ~oth1
+    ok &= ~(win & badp).any(axis=(1, 2))
+    # Saturated pixels next to a white blob: the fraction of its surround (2 px) that is
+    # clipped. A dot merging with a clipped region cannot be measured.
+    half_region = win & (d >= 0.5 * Cs)
+    rim = _dilate(half_region, 2) & ~half_region
+    sat_near = (satp & rim).sum(axis=(1, 2)) / np.maximum(rim.sum(axis=(1, 2)), 1)
+    ok &= sat_near <= _MAX_SATURATED_RIM
 
-    # 4. Ellipse and centre from the soft half-contrast region: moments by one matrix product.
-    q = np.clip(d * (_RAMP / c2s) + (0.5 - 0.5 * _RAMP), 0.0, 1.0) * _dilate(M, 1)
-    mom = (q.reshape(n, -1) @ basis).astype(np.float64)     # sums of q * (1, x, y, xx, xy, yy)
-    m0 = mom[:, 0]
+    # 4. Coverage: the signal over the dot's full contrast at each pixel. Paint multiplies the
+    # light, so the full contrast is a fixed fraction ``Ce`` of the local background's grey
+    # level in the original image (shading across the dot cancels); a white dot cannot rise
+    # above 255 (a clipped dot's top is 255 everywhere).
+    bg_grey = np.maximum(p - d if polarity > 0 else 255.0 - (p - d), 1.0)
+    e = d / bg_grey
+    Ce = np.maximum(np.where(core, _box3(e), -np.inf).reshape(n, -1).max(axis=1),
+                    0.9 * np.where(core, e, -np.inf).reshape(n, -1).max(axis=1))
+    full = bg_grey * np.where(Ce > 0, Ce, 1.0).astype(np.float32)[:, None, None]
+    if polarity > 0:
+        full = np.minimum(full, 255.0 - bg_grey)
+    cov = d / np.maximum(full, 1e-3)
+    # Per-direction local background (a band or a line on one side only), then the soft
+    # half-contrast region between it and the dot's top.
+    mcx, mcy, _, _, _, _ = _moments(core.astype(np.float32), mono)
+    b_pix, b_sec = _sector_background(_box3(cov), band, win, mcx, mcy, dxf, dyf)
+    q = np.clip(_RAMP * (cov - b_pix) / np.maximum(1.0 - b_pix, 1e-3) + (0.5 - 0.5 * _RAMP), 0.0, 1.0) * win
+    if DEBUG is not None:
+        DEBUG.update(q=q, d=d, win=win, core=core, band=band, C=C)
+    # 5. Ellipse and centre: moments of the region, trimmed a few times of the parts beyond
+    # the moment ellipse (a line or a shadow touching the dot).
+    mx, my, cxx, cxy, cyy, m0 = _moments(q, mono)
+    m0_full = np.maximum(m0, 1e-9)
+    q_full = q
+    for _ in range(_TRIM_ITERS):
+        dist = _ellipse_distance(mx, my, (cxx, cxy, cyy), dxf, dyf)
+        q = np.where(dist > _TRIM_MARGIN, 0.0, q_full)
+        mx, my, cxx, cxy, cyy, m0 = _moments(q, mono)
     m0s = np.maximum(m0, 1e-9)
-    mx, my = mom[:, 1] / m0s, mom[:, 2] / m0s
-    cxx = np.maximum(mom[:, 3] / m0s - mx * mx, 1e-6)
-    cxy = mom[:, 4] / m0s - mx * my
-    cyy = np.maximum(mom[:, 5] / m0s - my * my, 1e-6)
     tr = 0.5 * (cxx + cyy)
     disc = np.sqrt(np.maximum(0.25 * (cxx - cyy) ** 2 + cxy ** 2, 0.0))
     major = 2.0 * np.sqrt(np.maximum(tr + disc, 1e-6))
@@ -417,135 +602,18 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
     angle = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)
     ok &= m0 >= 1.5
 
-    # 5. Intensity-weighted centroid over the grown blob: only for the asymmetry feature.
-    win = grown & ~oth1 & ~badp
-    wd = (d * win).reshape(n, -1)
-    mw = (wd @ basis[:, :3]).astype(np.float64)
-    sw = mw[:, 0]
-    sws = np.where(sw > 0, sw, 1.0)
-    ix, iy = mw[:, 1] / sws, mw[:, 2] / sws
-    ok &= sw > 0
-
-    # 6. Shape residual against the soft moment ellipse (boundary covariance = 4 Sigma).
-    det = np.maximum(cxx * cyy - cxy * cxy, 1e-9)
-    ia = (cyy / (4 * det)).astype(np.float32)[:, None, None]
-    ib = (-cxy / (4 * det)).astype(np.float32)[:, None, None]
-    ic = (cxx / (4 * det)).astype(np.float32)[:, None, None]
-    ux = dxf[None] - mx.astype(np.float32)[:, None, None]
-    uy = dyf[None] - my.astype(np.float32)[:, None, None]
-    r2 = ux * ux + uy * uy
-    rho_e2 = np.maximum(ia * ux * ux + 2 * ib * ux * uy + ic * uy * uy, 1e-12)
-    dist = np.sqrt(r2) - np.sqrt(r2 / rho_e2)       # = |u| (1 - 1/rho): negative inside
-    cmp_win = grown & ~oth1
-    q_ell = np.clip(0.5 - dist, 0.0, 1.0)
-    shape = np.einsum("ij,ij->i", np.abs(q - q_ell).reshape(n, -1), cmp_win.reshape(n, -1),
-                      dtype=np.float64) / m0s
-    offset = np.hypot(ix - mx, iy - my) / np.maximum(major, 0.5)
-    asym = _asymmetry(q, mx, my, half)
-    prms = _profile_rms(d, rho_e2, np.sqrt(major * minor), cmp_win & ~badp)
-
-    background = (plane[:, 0] + plane[:, 1] * mx + plane[:, 2] * my + plane[:, 3] * mx * mx
-                  + plane[:, 4] * mx * my + plane[:, 5] * my * my)
-    for name, val in (("x", cx + mx), ("y", cy + my), ("major", major), ("minor", minor),
-                      ("angle", angle), ("contrast", c2), ("background", background),
-                      ("noise", sigma), ("shape_residual", shape), ("offset", offset),
-                      ("area", m0), ("asymmetry", asym), ("profile_rms", prms), ("ok", ok),
-                      ("border", border2)):
+    # 6. Shape measurements.
+    shape, rho_e2 = shape_residual(q, mx, my, (cxx, cxy, cyy), dxf, dyf, win, m0s)
+    asym = asymmetry(q, mx, my, half)
+    prms = profile_rms(d, rho_e2, np.sqrt(major * minor), win & ~badp)
+    bg_band = cb[:, 0] + cb[:, 1] * mx + cb[:, 2] * my
+    bg_ring = c0[alive][:, 0] + c0[alive][:, 1] * mx + c0[alive][:, 2] * my
+    for name, val in (("x", cx[alive] + mx), ("y", cy[alive] + my), ("major", major), ("minor", minor),
+                      ("angle", angle), ("contrast", C), ("background", bg_band),
+                      ("rise", (bg_band - bg_ring) / np.maximum(C, 1e-6)), ("noise", sigma),
+                      ("ring_noise", sig0[alive]), ("core_level", np.asarray(LEVELS)[kc]),
+                      ("area_ratio", area_ratio), ("shape_residual", shape), ("asymmetry", asym),
+                      ("profile_rms", prms), ("area", m0), ("ok", ok), ("border", border),
+                      ("open", 1.0 - b_sec.max(axis=1)), ("kept", m0 / m0_full), ("saturated", sat_near)):
         getattr(res, name)[alive] = val
     return res
-
-
-_PROFILE_BIN = 0.35
-_PROFILE_MARGIN = 2.5
-
-
-def _profile_rms(d: np.ndarray, rho2: np.ndarray, radius: np.ndarray, win: np.ndarray) -> np.ndarray:
-    """RMS of ``d`` around its mean profile over elliptical radius ``sqrt(rho2) * radius``."""
-    n = d.shape[0]
-    if n == 0:
-        return np.zeros(0)
-    rad = radius.astype(np.float32)[:, None, None]
-    t = np.sqrt(rho2) * rad
-    w = win & (t <= rad + _PROFILE_MARGIN)
-    nb = int(np.ceil((float(radius.max()) + _PROFILE_MARGIN) / _PROFILE_BIN)) + 2
-    # Pixels outside the window go to a last, ignored bin of their patch.
-    b = np.minimum(t * (1.0 / _PROFILE_BIN), nb - 2).astype(np.int64)
-    b[~w] = nb - 1
-    key = (np.arange(n) * nb)[:, None, None] + b
-    kf = key.ravel()
-    df = d.ravel()
-    cnt = np.bincount(kf, minlength=n * nb)
-    prof = (np.bincount(kf, weights=df, minlength=n * nb) / np.maximum(cnt, 1)).astype(np.float32)
-    r = (df - prof[kf]).reshape(n, -1)
-    wf = w.reshape(n, -1)
-    rss = np.einsum("ij,ij->i", r * wf, r, dtype=np.float64)
-    npix = wf.sum(axis=1)
-    nbins = (cnt.reshape(n, nb)[:, :-1] > 0).sum(axis=1)
-    return np.sqrt(rss / np.maximum(npix - nbins, 1))
-
-
-def _asymmetry(q: np.ndarray, mx: np.ndarray, my: np.ndarray, half: int) -> np.ndarray:
-    """``sum |q'(p) - q'(2c - p)| / (2 sum q)`` per patch, ``c = (mx, my)`` (offsets from the
-    patch centre).
-
-    ``2c = k + f`` with integer ``k``; ``q'`` is ``q`` shifted by ``f/2`` (bilinear), whose
-    reflection about ``c - f/2 = k/2`` is an exact index flip, so both sides of the comparison
-    carry the same interpolation blur and a centrally symmetric blob scores ~0.
-    """
-    n, s, _ = q.shape
-    if n == 0:
-        return np.zeros(0)
-    pad = 2
-    sp = s + 2 * pad
-    qp = np.zeros((n, sp, sp), np.float32)
-    qp[:, pad:pad + s, pad:pad + s] = q
-    ty_all, tx_all, k_all = [], [], []
-    for m in (my, mx):
-        t = 2.0 * m
-        k = np.floor(t)
-        k_all.append(k.astype(np.int64))
-        (ty_all if not ty_all else tx_all).append(((t - k) / 2.0).astype(np.float32)[:, None, None])
-    ty, tx = ty_all[0], tx_all[0]
-    ky, kx = k_all
-    # q'(p) = q(p + t): bilinear with offsets 0/1 (same integer offsets for all patches).
-    q1 = ((1 - ty) * (1 - tx) * qp[:, 1:-1, 1:-1] + (1 - ty) * tx * qp[:, 1:-1, 2:]
-          + ty * (1 - tx) * qp[:, 2:, 1:-1] + ty * tx * qp[:, 2:, 2:])      # (n, s+2, s+2), offset -1
-    # Reflection about k/2: q'(k - o); q1 index of offset o is o + half + 1.
-    s1 = s + 2
-    off = np.arange(-half, half + 1)
-    iy = np.clip(ky[:, None] - off[None] + half + 1, 0, s1 - 1)
-    ix = np.clip(kx[:, None] - off[None] + half + 1, 0, s1 - 1)
-    flat = q1.reshape(-1)
-    base = (np.arange(n) * s1 * s1)[:, None, None]
-    qr = flat[base + iy[:, :, None] * s1 + ix[:, None, :]]
-    num = np.abs(q1[:, 1:-1, 1:-1] - qr).reshape(n, -1).sum(axis=1, dtype=np.float64)
-    return num / np.maximum(2.0 * q.reshape(n, -1).sum(axis=1, dtype=np.float64), 1e-9)
-
-
-def _prefer_informative(mask: np.ndarray, dead: np.ndarray, min_count: int = 20) -> np.ndarray:
-    """``mask & ~dead`` for patches where that leaves at least ``min_count`` pixels and a third
-    of ``mask`` (a face next to a black background), else ``mask`` (a dot on a clipped card)."""
-    info = mask & ~dead
-    n_info = info.reshape(len(mask), -1).sum(axis=1)
-    enough = (n_info >= min_count) & (3 * n_info >= mask.reshape(len(mask), -1).sum(axis=1))
-    return np.where(enough[:, None, None], info, mask)
-
-
-def _component(binary: np.ndarray, pky: np.ndarray, pkx: np.ndarray,
-               ok: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The 8-connected component of each patch's ``binary`` containing its peak.
-
-    Returns the component ``(N, S, S)``, the other components, ``ok`` updated (False when
-    the peak is not in ``binary`` or the component touches the patch border) and whether the
-    component touches the border ``(N,)``.
-    """
-    n, s, _ = binary.shape
-    if n == 0:
-        return binary.copy(), binary.copy(), ok.copy(), np.zeros(0, bool)
-    _, lab = cv2.connectedComponents(_mosaic(binary), connectivity=8, ltype=cv2.CV_32S)
-    lab = _unmosaic(lab, n, s)
-    own = lab[np.arange(n), pky, pkx]
-    comp = (lab == own[:, None, None]) & (own[:, None, None] > 0)
-    others = binary & ~comp
-    border = comp[:, 0, :].any(1) | comp[:, -1, :].any(1) | comp[:, :, 0].any(1) | comp[:, :, -1].any(1)
-    return comp, others, ok & (own > 0) & ~border, border & (own > 0)

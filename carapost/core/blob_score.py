@@ -1,68 +1,111 @@
-"""The blob classifier: features of a fitted candidate -> probability that it is a blob centre.
+"""The blob classifier: shape measurements of fitted candidates, features, and the probability
+that a candidate is a blob centre.
 
-A logistic model on a handful of features of each candidate (see ``docs/blobs.md``):
+Shape measurements (computed by :mod:`carapost.core.blob_fit` with the functions below):
+
+``shape_residual``
+    mismatch between the soft half-contrast region and its moment ellipse (0 for a perfect
+    ellipse; merged blobs and dots cut by an occluding edge score high).
+``asymmetry``
+    mismatch between the region and its point reflection about the centre (an ellipse is
+    centrally symmetric; a dot cut by an occluding edge, or merged with a different one, is
+    not).
+``profile_rms``
+    residual of the blob signal around its own elliptical radial profile (a blurred ellipse is
+    a function of its elliptical radius; a merged or cut blob is not).
+
+Features of the classifier (:data:`FEATURES`):
 
 ``log_snr``
-    log of the candidate's normalised centre-surround response (signal-to-clutter ratio of
-    the dense stage, :mod:`carapost.core.blob_candidates`).
+    the candidate's normalised dense response (signal-to-clutter ratio).
 ``log_cnr_pix``
-    log of the blob's contrast over the image's pixel noise (how clearly it stands out of the
-    noise).
+    contrast over the image's pixel noise: how clearly it stands out of the noise.
 ``log_cnr``
-    log of the contrast over the standard deviation of the blob's background residual (noise,
-    texture and structure around it).
-``shape``
-    mismatch between the half-contrast region and its moment ellipse (0 for a perfect
-    ellipse; merged blobs and dots cut by an occluding edge score high).
+    contrast over the residual of its local background (noise, texture, structure around it).
+``log_weber``
+    contrast over the background grey level (for white blobs over the smaller of that and the
+    headroom to 255): paint is a large *relative* change of reflectance, skin texture a small
+    one, whatever the lighting.
+``rise``
+    how far the local background stands above the wider ring around it, over the contrast (a
+    dot on an eyebrow or a lip line stands on a band; a texture spot on a band rarely has the
+    contrast of paint).
+``core_level``
+    the level of the peak at which the blob separates from its surround.
+``shape``, ``asymmetry``, ``log_profile_chi2``
+    departures from a blurred ellipse (profile residual over pixel noise^2 + (2% C)^2).
 ``aspect``
     minor / major semi-axis.
-``log_weber``
-    log of the Weber contrast: blob contrast over the background level (in the original
-    image's grey levels; for white blobs over the smaller of that and the headroom to 255).
-    Paint is a large *relative* change of reflectance, skin texture a small one, whatever
-    the lighting.
-``asymmetry``
-    mismatch between the half-contrast region and its point reflection about the centre (an
-    ellipse is centrally symmetric; a dot cut by an occluding edge, or merged with another
-    one, is not).
-``log_profile_chi2``
-    log of the blob's residual variance around its own elliptical profile over the expected
-    variance (pixel noise^2 + (2% of the contrast)^2): a blurred ellipse is a function of
-    its elliptical radius, a merged or cut blob is not.
+``open``
+    the dot's contrast against its surround in its weakest direction, over its full contrast
+    (near 0 where it merges with something as dark: a neighbouring dot, a shadow, the lips).
+``kept``
+    the fraction of the half-contrast region inside its own ellipse (trimmed moments).
+``area_ratio``
+    the area of the peak's component one level above the core over the core's area (a flat
+    paint top keeps its area; a soft texture bump shrinks).
+``paint``
+    the dot's extreme grey level over a bright reference level of the image (white blobs),
+    or one minus that (black blobs): paint has a fixed reflectance, so black ink is among the
+    darkest things in view and white paint among the brightest, whatever the exposure (teeth
+    in an open mouth, eye corners and nostrils are not).
+``saturated``
+    the fraction of a white blob's surround that is clipped at 255.
 
-Squares (``log_snr``, ``log_cnr_pix``, ``log_weber``) let the logistic curve bend;
-``asymmetry`` times ``log_cnr_pix`` and ``log_profile_chi2`` times ``log_cnr`` make a departure
-from an ellipse count more on a high-contrast blob than on a noisy one. Every feature is
-clipped to a physical range, so the quadratic terms never extrapolate.
+``log_major``
+    the fitted major semi-axis (px).
+``log_cnr_ring``
+    contrast over the residual of the wider ring background.
+``log_ring_weber``
+    the candidate's ring contrast over its background grey level (before the fit).
+``level``
+    the pyramid level the blob was fitted on.
+``polarity``
+    +1 white, -1 black.
+``background``
+    the local background grey level over 255.
 
-The coefficients are fitted by ``benchmarks/fit_blob_score.py`` on rendered frames with exact
-ground truth (positives: candidates whose refined centre is within 0.5 px of a fully visible
-dot; negatives: everything else, including merged and partly occluded dots). The dense map
-model (``DENSE_COEF``) is the same fit on ``log_snr`` alone and drives the blob preview.
+Squares of ``log_cnr_pix`` and ``log_weber`` and a few products are kept from the earlier
+logistic model. Every feature is clipped to a physical range, so nothing extrapolates.
+
+**The classifier** is a small neural network: the standardised features feed one hidden layer
+of ``tanh`` units whose weighted sum is passed through the logistic function. Trained with the
+log-loss (the negative log-likelihood of the labels), its output is a probability; its
+calibration is checked on held-out images (``docs/blobs.md``). The weights live in
+``carapost/resources/blob_classifier.json``, written by ``benchmarks/fit_blob_score.py``,
+together with the per-pixel (dense) logistic model used by the preview.
 """
 
 from __future__ import annotations
 
+import json
+from functools import lru_cache
+from pathlib import Path
+
 import numpy as np
 
-__all__ = ["FEATURES", "PROFILE_MODEL_ERROR", "COEF", "DENSE_COEF", "features", "probability", "dense_probability"]
+__all__ = ["FEATURES", "PROFILE_MODEL_ERROR", "features", "probability", "dense_probability",
+           "load_model", "save_model", "network_probability", "shape_residual", "asymmetry", "profile_rms",
+           "MODEL_PATH"]
 
-FEATURES: tuple[str, ...] = ("bias", "log_snr", "log_cnr_pix", "log_cnr", "shape", "aspect",
-                             "log_snr^2", "log_cnr_pix^2", "log_weber", "log_weber^2", "asymmetry",
-                             "log_profile_chi2", "asymmetry*log_cnr_pix", "log_profile_chi2*log_cnr")
+FEATURES: tuple[str, ...] = ("bias", "log_snr", "log_cnr_pix", "log_cnr", "log_weber", "rise", "core_level",
+                             "shape", "asymmetry", "log_profile_chi2", "aspect", "log_cnr_pix^2",
+                             "log_weber^2", "asymmetry*log_cnr_pix", "log_profile_chi2*log_cnr_pix",
+                             "shape*log_cnr_pix", "open", "kept", "area_ratio", "open^2", "open*log_weber",
+                             "paint", "paint^2", "saturated", "log_major", "log_cnr_ring", "log_ring_weber",
+                             "level", "polarity", "background")
 
 _SNR_CAP = 100.0
+#: Smallest background grey level used for the Weber contrast (below it the skin is in deep
+#: shadow or beyond the silhouette, and noise dominates any ratio).
+_MIN_BACKGROUND = 15.0
 _CNR_CAP = 300.0
 
 #: Relative error allowed to the elliptical-profile model of a blob (fraction of its contrast).
 PROFILE_MODEL_ERROR = 0.02
 
-#: Logistic coefficients, in the order of ``FEATURES``. Fitted by benchmarks/fit_blob_score.py.
-COEF: np.ndarray = np.array([-6.1041, 0.2322, 1.2397, 2.8765, -2.3340, 1.8193, -0.1152, -0.0090, 0.8495,
-                            -1.3743, -0.8680, 0.3723, -2.3849, -0.7977])
-
-#: Logistic coefficients (bias, log_snr) of the dense (per-pixel) model.
-DENSE_COEF: np.ndarray = np.array([-3.6444, 0.4417])
+#: The classifier's weights (JSON, see :func:`load_model`).
+MODEL_PATH = Path(__file__).resolve().parents[1] / "resources" / "blob_classifier.json"
 
 
 def features(snr: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
@@ -73,9 +116,11 @@ def features(snr: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
     snr : (N,)
         Dense normalised response of each candidate.
     m : dict of str to (N,) arrays
-        ``contrast``, ``background`` (original grey levels), ``noise`` (background residual
-        std), ``pixel_noise`` (grey levels), ``polarity`` (optional, +1 white / -1 black), ``shape``, ``asymmetry``, ``profile_rms``
-        (:class:`carapost.core.blob_fit.PatchFit`), ``major``, ``minor`` (px).
+        ``contrast``, ``background`` (original grey levels), ``noise`` (local background
+        residual std), ``pixel_noise`` (grey levels), ``polarity`` (+1 white / -1 black),
+        ``rise``, ``core_level``, ``shape``, ``asymmetry``, ``profile_rms``, ``open``, ``kept``,
+        ``area_ratio``, ``paint``, ``saturated``, ``major``, ``minor`` (px), ``ring_noise``
+        (ring background residual std), ``ring_weber``, ``level``.
     """
     def log(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
         return np.log(np.clip(np.asarray(x, float), lo, hi))
@@ -83,22 +128,37 @@ def features(snr: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
     snr = np.asarray(snr, float)
     contrast = np.asarray(m["contrast"], float)
     pix = np.maximum(np.asarray(m["pixel_noise"], float), 0.5)
-    ls = log(snr, 1e-3, _SNR_CAP)
-    lp = log(contrast / pix, 1e-3, _CNR_CAP)
-    lc = log(contrast / np.maximum(np.asarray(m["noise"], float), 0.5), 1e-3, _CNR_CAP)
+    ls = log(snr, 1.0, _SNR_CAP)
+    lp = log(contrast / pix, 1.0, _CNR_CAP)
+    lc = log(contrast / np.maximum(np.asarray(m["noise"], float), 0.5), 1.0, _CNR_CAP)
     bg = np.asarray(m["background"], float)
-    if "polarity" in m:
-        # A white dot cannot rise above 255: its room is the smaller of the background level
-        # (paint multiplies the light) and the headroom to saturation.
-        bg = np.where(np.asarray(m["polarity"]) > 0, np.minimum(bg, 255.0 - bg), bg)
-    lw = log(contrast / np.maximum(bg, 1.0), 1e-3, 3.0)
-    asym = np.asarray(m["asymmetry"], float)
+    # A white dot cannot rise above 255: its room is the smaller of the background level
+    # (paint multiplies the light) and the headroom to saturation.
+    bg = np.where(np.asarray(m["polarity"]) > 0, np.minimum(bg, 255.0 - bg), bg)
+    lw = log(contrast / np.maximum(bg, _MIN_BACKGROUND), 0.02, 3.0)
+    rise = np.clip(np.asarray(m["rise"], float), -1.0, 4.0)
+    core = np.asarray(m["core_level"], float)
+    shape = np.clip(np.asarray(m["shape"], float), 0.0, 1.0)
+    asym = np.clip(np.asarray(m["asymmetry"], float), 0.0, 1.0)
     expected = pix ** 2 + (PROFILE_MODEL_ERROR * contrast) ** 2
     chi = log(np.asarray(m["profile_rms"], float) ** 2 / expected, 0.1, 1e3)
     aspect = np.asarray(m["minor"], float) / np.maximum(np.asarray(m["major"], float), 1e-6)
+    op = np.clip(np.asarray(m["open"], float), 0.0, 1.0)
+    kept = np.clip(np.asarray(m["kept"], float), 0.0, 1.0)
+    ar = np.clip(np.asarray(m["area_ratio"], float), 0.0, 1.0)
+    paint = np.clip(np.asarray(m["paint"], float), 0.0, 2.0)
+    sat = np.clip(np.asarray(m["saturated"], float), 0.0, 1.0)
+    major = np.asarray(m["major"], float)
+    lmaj = log(major, 1.0, 30.0)
+    lring = log(contrast / np.maximum(np.asarray(m["ring_noise"], float), 0.5), 1.0, _CNR_CAP)
+    lrw = log(np.asarray(m["ring_weber"], float), 0.01, 3.0)
+    level = np.clip(np.asarray(m["level"], float), 0.0, 3.0)
+    pol = np.asarray(m["polarity"], float)
+    bgl = np.clip(np.asarray(m["background"], float), 0.0, 255.0) / 255.0
     return np.stack([
-        np.ones_like(snr), ls, lp, lc, np.asarray(m["shape"], float), aspect,
-        ls * ls, lp * lp, lw, lw * lw, asym, chi, asym * lp, chi * lc,
+        np.ones_like(snr), ls, lp, lc, lw, rise, core, shape, asym, chi, aspect,
+        lp * lp, lw * lw, asym * lp, chi * lp, shape * lp, op, kept, ar, op * op, op * lw,
+        paint, paint * paint, sat, lmaj, lring, lrw, level, pol, bgl,
     ], axis=1)
 
 
@@ -106,14 +166,141 @@ def _logistic(z: np.ndarray) -> np.ndarray:
     return 0.5 * (1.0 + np.tanh(0.5 * z))
 
 
-def probability(feat: np.ndarray, coef: np.ndarray | None = None) -> np.ndarray:
+def network_probability(feat: np.ndarray, model: dict) -> np.ndarray:
+    """Output ``(N,)`` of the one-hidden-layer network ``model`` on features ``(N, F)``.
+
+    ``model`` holds ``mean``, ``std`` (F-1,) for the standardisation of every feature but the
+    bias, ``W1`` (F-1, H), ``b1`` (H,), ``w2`` (H,), ``b2`` (scalar):
+    ``p = logistic(tanh(((x - mean) / std) W1 + b1) w2 + b2)``.
+    """
+    x = (np.asarray(feat, float)[:, 1:] - model["mean"]) / model["std"]
+    h = np.tanh(x @ model["W1"] + model["b1"])
+    return _logistic(np.clip(h @ model["w2"] + model["b2"], -60.0, 60.0))
+
+
+def save_model(path: Path, model: dict, info: dict | None = None) -> None:
+    """Write a classifier (network arrays and ``dense_coef``) as JSON, with ``info`` (how it
+    was fitted)."""
+    out = {"features": list(FEATURES), "info": info or {}}
+    for k, v in model.items():
+        out[k] = np.asarray(v, float).tolist()
+    Path(path).write_text(json.dumps(out, separators=(",", ":")).replace('],"', '],\n"') + "\n")
+
+
+@lru_cache(maxsize=4)
+def load_model(path: str | None = None) -> dict:
+    """The classifier stored at ``path`` (default :data:`MODEL_PATH`) as arrays.
+
+    Raises
+    ------
+    ValueError
+        If the file's feature list does not match :data:`FEATURES`.
+    """
+    p = Path(path) if path else MODEL_PATH
+    raw = json.loads(p.read_text())
+    if tuple(raw.get("features", ())) != FEATURES:
+        raise ValueError(f"{p}: blob classifier was fitted on other features; rerun benchmarks/fit_blob_score.py")
+    return {k: np.asarray(v, float) for k, v in raw.items() if k not in ("features", "info")}
+
+
+def probability(feat: np.ndarray, model: dict | None = None) -> np.ndarray:
     """Probability ``(N,)`` float64 that each candidate is a well-located blob centre."""
-    c = COEF if coef is None else np.asarray(coef, float)
-    return _logistic(np.clip(np.asarray(feat, float) @ c, -60.0, 60.0))
+    return network_probability(feat, load_model() if model is None else model)
 
 
 def dense_probability(snr: np.ndarray, coef: np.ndarray | None = None) -> np.ndarray:
-    """Per-pixel probability (float32, shape of ``snr``) from the normalised response alone."""
-    c = DENSE_COEF if coef is None else np.asarray(coef, float)
+    """Per-pixel probability (float32, shape of ``snr``) from the normalised response alone
+    (logistic in ``log snr`` with coefficients ``coef`` = (bias, slope))."""
+    c = load_model()["dense_coef"] if coef is None else np.asarray(coef, float)
     z = c[0] + c[1] * np.log(np.clip(snr, 1e-3, None))
     return _logistic(z).astype(np.float32)
+
+
+# -- shape measurements ----------------------------------------------------------------------
+
+def shape_residual(q: np.ndarray, mx: np.ndarray, my: np.ndarray, cov: tuple, dxf: np.ndarray,
+                   dyf: np.ndarray, win: np.ndarray, m0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mismatch between soft regions ``q (N, S, S)`` and their moment ellipses.
+
+    ``cov = (cxx, cxy, cyy)`` are the regions' second central moments (a uniform ellipse's
+    boundary matrix is ``4 Sigma``); ``mx, my`` the centroids (offsets from the patch
+    centre); ``win`` the pixels compared; ``m0`` the regions' areas. Returns ``sum |q -
+    ellipse| / m0`` (N,) and the squared normalised elliptical radius ``(N, S, S)`` of every
+    pixel (1 on the ellipse).
+    """
+    cxx, cxy, cyy = cov
+    n = q.shape[0]
+    det = np.maximum(cxx * cyy - cxy * cxy, 1e-9)
+    ia = (cyy / (4 * det)).astype(np.float32)[:, None, None]
+    ib = (-cxy / (4 * det)).astype(np.float32)[:, None, None]
+    ic = (cxx / (4 * det)).astype(np.float32)[:, None, None]
+    ux = dxf[None] - mx.astype(np.float32)[:, None, None]
+    uy = dyf[None] - my.astype(np.float32)[:, None, None]
+    r2 = ux * ux + uy * uy
+    rho_e2 = np.maximum(ia * ux * ux + 2 * ib * ux * uy + ic * uy * uy, 1e-12)
+    dist = np.sqrt(r2) - np.sqrt(r2 / rho_e2)       # = |u| (1 - 1/rho): negative inside
+    q_ell = np.clip(0.5 - dist, 0.0, 1.0)
+    shape = np.einsum("ij,ij->i", np.abs(q - q_ell).reshape(n, -1), win.reshape(n, -1),
+                      dtype=np.float64) / m0
+    return shape, rho_e2
+
+
+_PROFILE_BIN = 0.35
+_PROFILE_MARGIN = 2.5
+
+
+def profile_rms(d: np.ndarray, rho2: np.ndarray, radius: np.ndarray, win: np.ndarray) -> np.ndarray:
+    """RMS of ``d (N, S, S)`` around its mean profile over the elliptical radius
+    ``sqrt(rho2) * radius`` (0.35 px bins, out to 2.5 px beyond the boundary, within ``win``)."""
+    n = d.shape[0]
+    if n == 0:
+        return np.zeros(0)
+    patch, pix = np.divmod(np.flatnonzero(win.ravel()), d.shape[1] * d.shape[2])
+    rad = radius.astype(np.float32)[patch]
+    t = np.sqrt(rho2.reshape(n, -1)[patch, pix]) * rad
+    inside = t <= rad + _PROFILE_MARGIN
+    patch, pix, t = patch[inside], pix[inside], t[inside]
+    nb = int(np.ceil((float(radius.max()) + _PROFILE_MARGIN) / _PROFILE_BIN)) + 1
+    key = patch * nb + np.minimum(t * (1.0 / _PROFILE_BIN), nb - 1).astype(np.int64)
+    df = d.reshape(n, -1)[patch, pix].astype(np.float64)
+    cnt = np.bincount(key, minlength=n * nb)
+    prof = np.bincount(key, weights=df, minlength=n * nb) / np.maximum(cnt, 1)
+    r = df - prof[key]
+    rss = np.bincount(patch, weights=r * r, minlength=n)
+    npix = np.bincount(patch, minlength=n)
+    nbins = (cnt.reshape(n, nb) > 0).sum(axis=1)
+    return np.sqrt(rss / np.maximum(npix - nbins, 1))
+
+
+def asymmetry(q: np.ndarray, mx: np.ndarray, my: np.ndarray, half: int) -> np.ndarray:
+    """``sum |q'(p) - q'(2c - p)| / (2 sum q)`` per patch, ``c = (mx, my)`` (offsets from the
+    patch centre).
+
+    ``2c = k + f`` with integer ``k``; ``q'`` is ``q`` shifted by ``f/2`` (bilinear), whose
+    reflection about ``c - f/2 = k/2`` is an exact index flip, so both sides of the comparison
+    carry the same interpolation blur and a centrally symmetric blob scores ~0.
+    """
+    n, s, _ = q.shape
+    if n == 0:
+        return np.zeros(0)
+    pad = 2
+    sp = s + 2 * pad
+    qp = np.zeros((n, sp, sp), np.float32)
+    qp[:, pad:pad + s, pad:pad + s] = q
+    ty2, tx2 = 2.0 * my, 2.0 * mx
+    ky, kx = np.floor(ty2).astype(np.int64), np.floor(tx2).astype(np.int64)
+    ty = ((ty2 - ky) / 2.0).astype(np.float32)[:, None, None]
+    tx = ((tx2 - kx) / 2.0).astype(np.float32)[:, None, None]
+    # q'(p) = q(p + t): bilinear with offsets 0/1 (same integer offsets for all patches).
+    q1 = ((1 - ty) * (1 - tx) * qp[:, 1:-1, 1:-1] + (1 - ty) * tx * qp[:, 1:-1, 2:]
+          + ty * (1 - tx) * qp[:, 2:, 1:-1] + ty * tx * qp[:, 2:, 2:])      # (n, s+2, s+2), offset -1
+    # Reflection about k/2: q'(k - o); q1 index of offset o is o + half + 1.
+    s1 = s + 2
+    off = np.arange(-half, half + 1)
+    iy = np.clip(ky[:, None] - off[None] + half + 1, 0, s1 - 1)
+    ix = np.clip(kx[:, None] - off[None] + half + 1, 0, s1 - 1)
+    flat = q1.reshape(-1)
+    base = (np.arange(n) * s1 * s1)[:, None, None]
+    qr = flat[base + iy[:, :, None] * s1 + ix[:, None, :]]
+    num = np.abs(q1[:, 1:-1, 1:-1] - qr).reshape(n, -1).sum(axis=1, dtype=np.float64)
+    return num / np.maximum(2.0 * q.reshape(n, -1).sum(axis=1, dtype=np.float64), 1e-9)

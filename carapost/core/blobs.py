@@ -4,13 +4,15 @@ The reference guide's four steps (classifier -> probability of a blob centre -> 
 ellipse):
 
 1. A dense, multi-scale centre-surround response normalised by the image's own clutter
-   (:mod:`carapost.core.blob_candidates`) proposes candidate centres.
-2. Each candidate is refined on a patch (:mod:`carapost.core.blob_fit`): local plane
-   background, half-contrast boundary, moment ellipse, sub-pixel centroid, shape check.
-3. A logistic classifier (:mod:`carapost.core.blob_score`), calibrated on rendered dots with
-   exact ground truth, turns the candidate's features into the probability that it is a
-   (well-located) blob centre; the Blob Parameters threshold is applied to it.
-4. Duplicates (one blob found at two scales) are merged, keeping the most probable.
+   (:mod:`carapost.core.blob_candidates`) proposes candidate centres; a ring test (contrast
+   against a ring of pixels around each) removes edges and faint texture.
+2. Candidates that climb to the same peak (one blob seen at several scales) are fitted once.
+   Each fit (:mod:`carapost.core.blob_fit`) searches the levels of its peak for the blob's
+   core, models its local background, and measures the ellipse, sub-pixel centre and shape.
+3. A small neural-network classifier (:mod:`carapost.core.blob_score`), calibrated on rendered dots and
+   synthetic faces with exact ground truth, turns the fit's features into the probability
+   that it is a (well-located) blob centre; the Blob Parameters threshold is applied to it.
+4. Duplicates and nested detections are resolved, keeping the most probable.
 
 Saturated pixels (255) never produce blobs; pixels where ``mask`` is True are ignored, and a
 blob touching them is dropped. See ``docs/blobs.md``.
@@ -26,34 +28,41 @@ import numpy as np
 from ..model.detections import BLACK, DETECTION_FIELDS, WHITE
 from ..model.params import BlobParameters
 from . import blob_score
-from .blob_candidates import find_candidates, level_range, pixel_noise, pyramid, responses, signed_image
+from .blob_candidates import (
+    Candidates,
+    detection_scales,
+    find_candidates,
+    pixel_noise,
+    pyramid,
+    refine_level,
+    responses,
+    ring_test,
+    signed_image,
+)
 from .blob_fit import fit_patches, patch_half_size
 
 __all__ = ["detect_blobs", "blob_probability", "analyse_blobs", "BlobAnalysis", "empty_table",
            "CANDIDATE_MIN_SNR"]
 
-#: Dense-stage threshold on the normalised response: deliberately low (recall); the classifier
-#: decides.
+#: Dense-stage threshold on the normalised response: deliberately low (recall).
 CANDIDATE_MIN_SNR = 4.0
-#: Dense-stage threshold on the rough Weber contrast (response over surround level): skin
-#: texture and shading ripples are far below it, paint far above (see docs/blobs.md).
+#: Dense-stage threshold on the rough Weber contrast (response over surround level).
 CANDIDATE_MIN_WEBER = 0.05
-#: Largest blob radius refined at full resolution; bigger blobs are refined on a pyramid level
-#: where their radius is at most this many pixels.
-_MAX_REFINE_RADIUS = 8.0
+#: Ring test: the candidate's centre must exceed the ring's upper quartile by this many pixel
+#: noise sigmas (an edge has half its ring as bright as its centre) ...
+RING_MIN_CNR = 6.0
+#: ... and the ring's median by this fraction of the background grey level (paint is a large
+#: relative change, skin texture a small one).
+RING_MIN_WEBER = 0.12
+_MERGE_PLATEAUS = True
 #: A fitted blob with at least this probability hides smaller, weaker-contrast detections
 #: inside its ellipse (rim maxima and interior texture of big blobs).
 _CONTAINER_SCORE = 0.3
-#: A deferred candidate inside a blob found with at least ``_CONTAINER_SCORE`` is not fitted
-#: when that blob is at most this many times its scale (the same blob at another scale).
-_SAME_BLOB_RATIO = 2.5
-#: ... and it is never fitted inside a blob found with at least this probability.
-_CONFIDENT_SCORE = 0.8
 
 
 @dataclass
 class BlobAnalysis:
-    """Every candidate of one polarity with its fit and probability (full-resolution pixels).
+    """Every fitted candidate of one polarity with its probability (full-resolution pixels).
 
     Attributes
     ----------
@@ -62,22 +71,24 @@ class BlobAnalysis:
     score : float64 (N,)
         Probability of a blob centre (0 for rejected candidates).
     ok : bool (N,)
-        Passed the hard checks (boundary found, radius in range, not masked or saturated,
-        not a duplicate of a more probable candidate).
+        Passed the hard checks (core found, radius in range, not masked or saturated, not a
+        duplicate of a more probable candidate).
     features : float64 (N, F)
         Classifier features (:data:`carapost.core.blob_score.FEATURES`).
     measures : dict of str to float64 (N,)
-        Raw fit measurements (contrast, background, noise, shape, offset, ...), for diagnostics.
+        Raw fit measurements (contrast, background, noise, shape, ...), for diagnostics.
     cand_x, cand_y : float64 (N,)
-        The candidate pixel the fit started from (full-resolution px).
+        The peak pixel the fit started from (full-resolution px).
     snr : float64 (N,)
         The candidate's normalised dense response.
     cand_weber : float64 (N,)
-        The candidate's rough Weber contrast (dense stage).
+        The candidate's ring contrast over its background grey level.
     polarity : int
         +1 white, -1 black.
     levels : list
         The dense responses (:class:`carapost.core.blob_candidates.ResponseLevel`).
+    n_candidates : int
+        Dense candidates before the ring test.
     """
 
     x: np.ndarray
@@ -95,6 +106,7 @@ class BlobAnalysis:
     cand_weber: np.ndarray
     polarity: int
     levels: list
+    n_candidates: int = 0
 
     def table(self, threshold: float) -> dict[str, np.ndarray]:
         """Detections with ``score > threshold`` as a table of :data:`DETECTION_FIELDS`."""
@@ -149,6 +161,35 @@ def _saturation(level: int) -> tuple[int, int]:
     return (255 - tol, 255)
 
 
+_MEASURES = ("x", "y", "major", "minor", "angle", "contrast", "background", "rise", "noise", "ring_noise",
+             "core_level", "area_ratio", "shape", "asymmetry", "profile_rms", "area", "pixel_noise", "level",
+             "border", "open", "kept", "saturated")
+
+
+class _Context:
+    """Per-image state shared by the fitting passes."""
+
+    def __init__(self, pyr: list[np.ndarray], mask: np.ndarray | None, polarity: int, max_radius: float):
+        self.pyr = pyr
+        self.mask = mask
+        self.polarity = polarity
+        self.max_radius = max_radius
+        self.noise: dict[int, float] = {}
+        self.masks: dict[int, np.ndarray] = {}
+
+    def level_noise(self, k: int) -> float:
+        if k not in self.noise:
+            self.noise[k] = pixel_noise(self.pyr[k])
+        return self.noise[k]
+
+    def level_mask(self, k: int) -> np.ndarray | None:
+        if self.mask is None:
+            return None
+        if k not in self.masks:
+            self.masks[k] = _level_mask(self.mask, self.pyr[k].shape)
+        return self.masks[k]
+
+
 def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_radius: float,
                   adaptive: bool = False, mask: np.ndarray | None = None) -> BlobAnalysis:
     """Find, fit and score every blob candidate of one polarity.
@@ -168,7 +209,7 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
     Returns
     -------
     BlobAnalysis
-        All candidates (use :meth:`BlobAnalysis.table` to threshold).
+        All fitted candidates (use :meth:`BlobAnalysis.table` to threshold).
 
     Raises
     ------
@@ -179,82 +220,215 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
     if polarity not in (WHITE, BLACK):
         raise ValueError(f"polarity must be {WHITE} (white) or {BLACK} (black), got {polarity}")
     signed = signed_image(image, polarity)
-    lv_range = level_range(min_radius, max_radius)
-    pyr = pyramid(signed, lv_range.stop)
-    levels = [responses(pyr[k], k, adaptive=adaptive) for k in lv_range if k < len(pyr)]
-    cand = find_candidates(levels, min_snr=CANDIDATE_MIN_SNR, min_radius=min_radius,
-                           max_radius=max_radius, polarity=polarity, min_weber=CANDIDATE_MIN_WEBER)
+    scales = detection_scales(min_radius, max_radius)
+    n_levels = max(max(scales), int(refine_level(max_radius * 2.0))) + 1
+    pyr = pyramid(signed, n_levels)
+    levels = [responses(pyr[k], k, sides, adaptive=adaptive) for k, sides in scales.items() if k < len(pyr)]
+    cand = find_candidates(levels, min_snr=CANDIDATE_MIN_SNR, polarity=polarity, min_weber=CANDIDATE_MIN_WEBER)
+    ctx = _Context(pyr, mask, polarity, max_radius)
+    n_cand = len(cand)
     if mask is not None and len(cand):
         keep = np.ones(len(cand), bool)
         for k in np.unique(cand.level):
             sel = np.flatnonzero(cand.level == k)
-            keep[sel] = ~_level_mask(mask, pyr[k].shape)[cand.y[sel], cand.x[sel]]
+            keep[sel] = ~ctx.level_mask(int(k))[cand.y[sel], cand.x[sel]]
         cand = cand.subset(keep)
+    rt = ring_test(pyr, levels, cand, ctx.noise, polarity)
+    c75 = rt.contrast(0.75)
+    weber = rt.contrast(0.5) / np.maximum(rt.background(), 1.0)
+    gate = (c75 >= RING_MIN_CNR * rt.noise) & (weber >= RING_MIN_WEBER)
+    cand, c75, weber = cand.subset(gate), c75[gate], weber[gate]
+    rep, px, py, ref, rep_radius = _representatives(ctx, cand, c75)
+    cand, weber = cand.subset(rep), weber[rep]
 
     n = len(cand)
-    out = {k: np.zeros(n) for k in ("x", "y", "major", "minor", "angle", "contrast", "background",
-                                   "noise", "shape", "offset", "asymmetry", "profile_rms",
-                                   "pixel_noise")}
+    out = {k: np.zeros(n) for k in _MEASURES}
+    out["ring_weber"] = weber.astype(float)
     ok = np.zeros(n, bool)
     if n:
-        # Pass 1: candidates not close to a stronger one. Pass 2: the others (rim maxima of a
-        # big blob, a second scale) unless inside a blob already found at their scale, together
-        # with pass 1's blobs that reached their patch border, again with a patch twice the
-        # size. Pass 3: pass 2's border blobs.
-        lm_cache: dict = {}
-        shadow = _shadowed(cand)
-        radius = cand.radius.copy()
-        sel = np.flatnonzero(~shadow)
-        border = _fit_groups(pyr, cand, sel, radius[sel], out, ok, polarity, mask, lm_cache)
-        retry = sel[border & (radius[sel] * 2 <= max_radius * 1.6)]
-        radius[retry] *= 2.0
-        second = np.flatnonzero(shadow)
-        if len(second):
-            sc1 = _score(cand, out, ok, min_radius, max_radius, image.shape, polarity)[0]
-            px = cand.x[second] * 2.0 ** cand.level[second]
-            py = cand.y[second] * 2.0 ** cand.level[second]
-            # Inside a blob found at the candidate's scale (the same blob), or inside a clean,
-            # confident blob (a rim maximum): not fitted.
-            skip = _inside(px, py, out, ok & (sc1 >= _CONTAINER_SCORE), radius=cand.radius[second])
-            skip |= _inside(px, py, out, ok & (sc1 >= _CONFIDENT_SCORE))
-            second = second[~skip]
-        for _ in range(2):
-            sel = np.concatenate([retry, second])
+        radius = rep_radius.copy()
+        level = ref.copy()
+        sel = np.arange(n)
+        for _ in range(3):
             if len(sel) == 0:
                 break
-            border = _fit_groups(pyr, cand, sel, radius[sel], out, ok, polarity, mask, lm_cache)
+            border = _fit(ctx, sel, px[sel], py[sel], level[sel], radius[sel], out, ok)
             retry = sel[border & (radius[sel] * 2 <= max_radius * 1.6)]
             radius[retry] *= 2.0
-            second = second[:0]
+            new_level = np.minimum(refine_level(radius[retry]), len(pyr) - 1)
+            sh = new_level - level[retry]
+            px[retry] >>= np.maximum(sh, 0)
+            py[retry] >>= np.maximum(sh, 0)
+            level[retry] = new_level
+            sel = retry
+        # Blobs fitted on a coarse level that turn out small enough for a finer one: refit.
+        fine = np.minimum(refine_level(out["major"]), level)
+        again = np.flatnonzero(ok & (fine < level))
+        if len(again):
+            k = fine[again]
+            s = 2.0 ** k
+            gx = np.rint(out["x"][again] / s).astype(np.int64)
+            gy = np.rint(out["y"][again] / s).astype(np.int64)
+            _fit(ctx, again, gx, gy, k, np.maximum(out["major"][again], 1.0), out, ok)
+    # The dot's extreme grey level over a bright reference level of the image: paint has a
+    # fixed reflectance (black ink is among the darkest things in view, white paint among the
+    # brightest), whatever the exposure.
+    top = out["background"] + polarity * out["contrast"]
+    out["paint"] = top / _reference_level(image) if polarity > 0 else 1.0 - top / _reference_level(image)
     score, ok, feat = _score(cand, out, ok, min_radius, max_radius, image.shape, polarity)
     ok &= _unique(out, score, ok)
+    cx, cy = cand.full_xy()
     return BlobAnalysis(x=out["x"], y=out["y"], major=out["major"], minor=out["minor"],
                         angle=out["angle"], score=score, ok=ok, features=feat, measures=out,
-                        cand_x=(cand.x * 2.0 ** cand.level).astype(float),
-                        cand_y=(cand.y * 2.0 ** cand.level).astype(float), snr=cand.snr,
-                        cand_weber=cand.weber,
-                        polarity=polarity, levels=levels)
+                        cand_x=cx, cand_y=cy, snr=cand.snr, cand_weber=weber,
+                        polarity=polarity, levels=levels, n_candidates=n_cand)
 
 
-def _shadowed(cand) -> np.ndarray:
-    """Candidates within 1.5 radii of a candidate with a higher SNR, (N,) bool."""
-    from scipy.spatial import cKDTree
+def _reference_level(image: np.ndarray) -> float:
+    """95th percentile of the informative pixels (neither black nor clipped) of every fourth
+    row and column: the grey level of brightly lit skin or card."""
+    sub = image[::4, ::4]
+    info = sub[(sub > 4) & (sub < 251)]
+    if info.size < 64:
+        return 255.0
+    return max(float(np.percentile(info, 95)), 8.0)
 
+
+def _climb(img: np.ndarray, x: np.ndarray, y: np.ndarray, steps: int = 16
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Move each point uphill on the 3x3 mean of ``img`` (one pixel per step, 8 neighbours)
+    until it reaches a local maximum or ``steps`` steps are done. Returns the end points and
+    the 3x3 mean there."""
+    H, W = img.shape
+    off = np.arange(-2, 3)
+    x, y = x.copy(), y.copy()
+    top = np.zeros(len(x))
+    moving = np.arange(len(x))
+    for _ in range(steps):
+        if len(moving) == 0:
+            break
+        rows = np.clip(y[moving, None] + off[None], 0, H - 1)
+        cols = np.clip(x[moving, None] + off[None], 0, W - 1)
+        win = img[rows[:, :, None], cols[:, None, :]].astype(np.float32)        # (m, 5, 5)
+        s = win[:, :-2] + win[:, 1:-1] + win[:, 2:]
+        box = (s[:, :, :-2] + s[:, :, 1:-1] + s[:, :, 2:]).reshape(len(moving), 9)
+        top[moving] = box[:, 4] / 9.0
+        # Prefer staying put on ties (plateaus).
+        box[:, 4] += 1e-3
+        arg = np.argmax(box, axis=1)
+        dy, dx = np.divmod(arg, 3)
+        step = arg != 4
+        x[moving] = np.clip(x[moving] + dx - 1, 0, W - 1)
+        y[moving] = np.clip(y[moving] + dy - 1, 0, H - 1)
+        moving = moving[step]
+    return x, y, top
+
+
+def _representatives(ctx: _Context, cand: Candidates, c75: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One candidate per blob top.
+
+    Every candidate climbs to its peak on its refinement level; candidates that reach the
+    same peak pixel are one group. The representative is the smallest-scale member
+    whose ring contrast is at least 0.8 of the group's best (a scale much smaller than the
+    blob has its ring inside it and little contrast; a much bigger one dilutes its centre).
+    Representatives whose peaks are very close (one plateau) are then merged.
+
+    Returns the representatives' indices, their peak pixels ``px, py``, level and radius
+    estimate (full-resolution px).
+    """
     n = len(cand)
-    out = np.zeros(n, bool)
-    if n < 2:
-        return out
-    s = 2.0 ** cand.level
-    pts = np.stack([cand.x * s, cand.y * s], axis=1)
-    pairs = cKDTree(pts).query_pairs(r=float(1.5 * cand.radius.max()), output_type="ndarray")
-    if len(pairs) == 0:
-        return out
-    i = np.concatenate([pairs[:, 0], pairs[:, 1]])
-    j = np.concatenate([pairs[:, 1], pairs[:, 0]])
-    d = np.linalg.norm(pts[i] - pts[j], axis=1)
-    hit = (d < 1.5 * cand.radius[i]) & (cand.snr[i] > cand.snr[j])
-    out[j[hit]] = True
-    return out
+    if n == 0:
+        z = np.zeros(0, np.int64)
+        return z, z, z, z, np.zeros(0)
+    ref = np.minimum(refine_level(cand.radius), len(ctx.pyr) - 1)
+    px = np.zeros(n, np.int64)
+    py = np.zeros(n, np.int64)
+    top = np.zeros(n)
+    for k in np.unique(ref):
+        sel = np.flatnonzero(ref == k)
+        sh = cand.level[sel] - k
+        x = np.where(sh >= 0, cand.x[sel] << np.maximum(sh, 0), cand.x[sel] >> np.maximum(-sh, 0))
+        y = np.where(sh >= 0, cand.y[sel] << np.maximum(sh, 0), cand.y[sel] >> np.maximum(-sh, 0))
+        px[sel], py[sel], top[sel] = _climb(ctx.pyr[int(k)], x, y)
+    # Same refinement level and same peak pixel: one group.
+    key = (ref * (1 << 20) + py) * (1 << 20) + px
+    _, label = np.unique(key, return_inverse=True)
+    best = np.zeros(label.max() + 1)
+    np.maximum.at(best, label, c75)
+    eligible = c75 >= 0.8 * best[label]
+    # Smallest radius among the eligible members of each group (ties: highest contrast).
+    order = np.lexsort((-c75, cand.radius, ~eligible, label))
+    first = np.ones(n, bool)
+    first[1:] = label[order][1:] != label[order][:-1]
+    rep = np.sort(order[first])
+    # Peaks of one plateau (a flat or clipped dot top, noise): representatives whose peaks
+    # are closer than half the smaller radius (at least 2 px) are one blob; the one on the
+    # higher top stays (a dot on a band is above the band's own peaks); when the tops are
+    # equal within the noise (one plateau) it takes the better scale estimate.
+    radius = cand.radius.copy()
+    if len(rep) > 1 and _MERGE_PLATEAUS:
+        from scipy.spatial import cKDTree
+
+        s = 2.0 ** ref[rep]
+        pts = np.stack([px[rep] * s, py[rep] * s], axis=1)
+        lim = np.maximum(2.0, 0.5 * cand.radius[rep])
+        pairs = cKDTree(pts).query_pairs(r=float(lim.max()), output_type="ndarray")
+        if len(pairs):
+            i, j = pairs[:, 0], pairs[:, 1]
+            ri, rj = cand.radius[rep[i]], cand.radius[rep[j]]
+            close = (np.linalg.norm(pts[i] - pts[j], axis=1) <= np.minimum(lim[i], lim[j])) & \
+                (np.maximum(ri, rj) <= 1.7 * np.minimum(ri, rj))
+            i, j = i[close], j[close]
+            win_i = top[rep[i]] >= top[rep[j]]
+            loser, winner = np.where(win_i, j, i), np.where(win_i, i, j)
+            # On one plateau (tops equal within the noise) the better scale estimate (higher
+            # ring contrast) gives the radius.
+            tol = np.array([4.0 * ctx.level_noise(int(k)) / 3.0 + 2.0 for k in ref[rep[winner]]])
+            same = (top[rep[winner]] - top[rep[loser]] <= tol) & (c75[rep[loser]] > c75[rep[winner]])
+            radius[rep[winner[same]]] = cand.radius[rep[loser[same]]]
+            keep = np.ones(len(rep), bool)
+            keep[loser] = False
+            rep = rep[keep]
+    return rep, px[rep], py[rep], ref[rep], radius[rep]
+
+
+def _fit(ctx: _Context, sel: np.ndarray, px: np.ndarray, py: np.ndarray, level: np.ndarray,
+         radius: np.ndarray, out: dict[str, np.ndarray], ok: np.ndarray) -> np.ndarray:
+    """Fit blobs ``sel`` centred on pixels ``px, py`` of pyramid ``level`` with full-resolution
+    radius estimates ``radius``, in groups of equal level and patch size, writing into
+    ``out``/``ok``. Returns ``border (len(sel),)``."""
+    border = np.zeros(len(sel), bool)
+    r_lv = radius / 2.0 ** level
+    half = patch_half_size(r_lv)
+    group = level * 10000 + half
+    for gk in np.unique(group):
+        loc = np.flatnonzero(group == gk)
+        idx = sel[loc]
+        k, h = int(gk // 10000), int(gk % 10000)
+        fit = fit_patches(ctx.pyr[k], px[loc], py[loc], r_lv[loc], h, polarity=ctx.polarity,
+                          pixel_noise=ctx.level_noise(k), max_radius=ctx.max_radius / 2.0 ** k,
+                          bad=ctx.level_mask(k), saturated=_saturation(k) if ctx.polarity > 0 else None)
+        s = 2.0 ** k
+        out["x"][idx] = fit.x * s
+        out["y"][idx] = fit.y * s
+        out["major"][idx] = fit.major * s
+        out["minor"][idx] = fit.minor * s
+        out["angle"][idx] = fit.angle
+        out["contrast"][idx] = fit.contrast
+        # Background level in the original image's grey levels (the level image is signed).
+        out["background"][idx] = fit.background if ctx.polarity > 0 else 255.0 - fit.background
+        for name in ("rise", "noise", "ring_noise", "core_level", "area_ratio", "asymmetry", "profile_rms",
+                     "open", "kept", "saturated"):
+            out[name][idx] = getattr(fit, name)
+        out["shape"][idx] = fit.shape_residual
+        out["area"][idx] = fit.area * s * s
+        out["pixel_noise"][idx] = ctx.level_noise(k)
+        out["level"][idx] = k
+        out["border"][idx] = fit.border
+        ok[idx] = fit.ok
+        border[loc] = fit.border
+    return border
 
 
 def _score(cand, out: dict[str, np.ndarray], ok: np.ndarray, min_radius: float, max_radius: float,
@@ -271,33 +445,6 @@ def _score(cand, out: dict[str, np.ndarray], ok: np.ndarray, min_radius: float, 
     return score, ok, feat
 
 
-def _inside(px: np.ndarray, py: np.ndarray, out: dict[str, np.ndarray], found: np.ndarray,
-            margin: float = 1.0, radius: np.ndarray | None = None) -> np.ndarray:
-    """Which points ``(px, py)`` lie inside (``margin`` px grown) a fitted ellipse ``found``.
-
-    With ``radius`` (the points' scale, px), only ellipses at most ``_SAME_BLOB_RATIO`` times
-    bigger count: a much smaller candidate inside a big blob may be a dot on a dark band.
-    """
-    from scipy.spatial import cKDTree
-
-    res = np.zeros(len(px), bool)
-    idx = np.flatnonzero(found)
-    if len(idx) == 0 or len(px) == 0:
-        return res
-    cen = np.stack([out["x"][idx], out["y"][idx]], axis=1)
-    big = float(out["major"][idx].max()) + margin
-    lists = cKDTree(np.stack([px, py], axis=1)).query_ball_point(cen, r=big)
-    jj = np.repeat(idx, [len(v) for v in lists])
-    if len(jj) == 0:
-        return res
-    ii = np.concatenate([np.asarray(v, int) for v in lists])
-    hit = _in_ellipse(px[ii], py[ii], out, jj, margin)
-    if radius is not None:
-        hit &= out["major"][jj] <= _SAME_BLOB_RATIO * radius[ii]
-    res[ii[hit]] = True
-    return res
-
-
 def _in_ellipse(px: np.ndarray, py: np.ndarray, out: dict[str, np.ndarray], j: np.ndarray,
                 margin: float) -> np.ndarray:
     """Whether each point lies inside ellipse ``j`` grown by ``margin`` px."""
@@ -307,56 +454,6 @@ def _in_ellipse(px: np.ndarray, py: np.ndarray, out: dict[str, np.ndarray], j: n
     u = (dx * c + dy * s) / (out["major"][j] + margin)
     v = (-dx * s + dy * c) / (out["minor"][j] + margin)
     return u * u + v * v <= 1.0
-
-
-def _fit_groups(pyr: list[np.ndarray], cand, sel_all: np.ndarray, radius: np.ndarray,
-                out: dict[str, np.ndarray], ok: np.ndarray, polarity: int,
-                mask: np.ndarray | None, lm_cache: dict) -> np.ndarray:
-    """Fit candidates ``sel_all`` (radius estimates ``radius``, full-res px) in groups of equal
-    refinement level and patch size, writing into ``out``/``ok``. Returns ``border (len(sel_all),)``."""
-    border = np.zeros(len(sel_all), bool)
-    level = cand.level[sel_all]
-    # Refinement level: where the blob's radius is at most _MAX_REFINE_RADIUS px, never coarser
-    # than the candidate's own level.
-    ref = np.clip(np.ceil(np.log2(np.maximum(radius, 1e-6) / _MAX_REFINE_RADIUS)), 0, None).astype(int)
-    ref = np.minimum(ref, len(pyr) - 1)
-    r_ref = radius / 2.0 ** ref
-    half = patch_half_size(r_ref)
-    # Candidate pixel at the refinement level.
-    sh = level - ref
-    px = np.where(sh >= 0, cand.x[sel_all] << np.maximum(sh, 0), cand.x[sel_all] >> np.maximum(-sh, 0))
-    py = np.where(sh >= 0, cand.y[sel_all] << np.maximum(sh, 0), cand.y[sel_all] >> np.maximum(-sh, 0))
-    group = ref * 10000 + half
-    for g in np.unique(group):
-        loc = np.flatnonzero(group == g)
-        sel = sel_all[loc]
-        k, h = int(g // 10000), int(g % 10000)
-        img_k = pyr[k]
-        if mask is not None and k not in lm_cache:
-            lm_cache[k] = _level_mask(mask, img_k.shape)
-        fit = fit_patches(img_k, px[loc], py[loc], r_ref[loc], h,
-                          bad=None if mask is None else lm_cache[k],
-                          saturated=_saturation(k) if polarity > 0 else None)
-        s = 2.0 ** k
-        out["x"][sel] = fit.x * s
-        out["y"][sel] = fit.y * s
-        out["major"][sel] = fit.major * s
-        out["minor"][sel] = fit.minor * s
-        out["angle"][sel] = fit.angle
-        out["contrast"][sel] = fit.contrast
-        # Background level in the original image's grey levels (the level image is signed).
-        out["background"][sel] = fit.background if polarity > 0 else 255.0 - fit.background
-        out["noise"][sel] = fit.noise
-        out["shape"][sel] = fit.shape_residual
-        out["offset"][sel] = fit.offset
-        out["asymmetry"][sel] = fit.asymmetry
-        if ("noise", k) not in lm_cache:
-            lm_cache[("noise", k)] = pixel_noise(img_k)
-        out["profile_rms"][sel] = fit.profile_rms
-        out["pixel_noise"][sel] = lm_cache[("noise", k)]
-        ok[sel] = fit.ok
-        border[loc] = fit.border
-    return border
 
 
 def _unique(out: dict[str, np.ndarray], score: np.ndarray, ok: np.ndarray) -> np.ndarray:

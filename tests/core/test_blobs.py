@@ -109,9 +109,18 @@ def test_threshold_behaves_as_probability():
         assert np.all(d["score"] > t) if t < 1 else len(d["x"]) == 0
     assert all(a >= b for a, b in zip(counts, counts[1:])), counts
     assert all(hi <= lo for lo, hi in zip(sets, sets[1:])), "raising the threshold must only remove"
-    assert counts[0] >= 1.2 * counts[2]          # 0 finds a lot (texture spots, partial fits)
+    # 0 returns every fitted candidate: also texture spots and partial fits. (Most texture is
+    # already removed before the fit by the ring test, so the surplus is modest: 68 vs 59.)
+    assert counts[0] > counts[2]
+    wrong = []
+    for t in (0.0, 0.4):
+        d = detect_blobs(fr.image, params(black_threshold=t))
+        j, _ = match(np.stack([d["x"], d["y"]], 1), fr.xy)
+        wrong.append(int((j < 0).sum()))
+    assert wrong[0] > wrong[1], wrong             # what the threshold removes is mostly wrong
     assert counts[-1] == 0                        # 1 finds nothing
-    assert counts[2] >= 0.99 * fr.clean.sum()
+    # Strong texture (0.15): one tiny elongated dot (2.1 x 1.2 px) scores 0.33 (59 of 60 found).
+    assert counts[2] >= 0.98 * fr.clean.sum()
 
 
 def test_radius_limits_are_respected():
@@ -339,3 +348,20 @@ def test_csv_writer_rejects_inconsistent_tables(tmp_path):
     with pytest.raises(ValueError, match="different lengths"):
         write_detections_csv(tmp_path / "x.csv", [(0, 0, t)])
     assert not (tmp_path / "x.csv").exists()
+
+
+def test_classifier_file_matches_its_features(tmp_path):
+    from carapost.core import blob_score
+
+    model = blob_score.load_model()
+    n = len(blob_score.FEATURES) - 1                 # every feature but the bias
+    assert model["W1"].shape[0] == n and model["mean"].shape == (n,) and model["dense_coef"].shape == (2,)
+    feat = np.zeros((3, n + 1))
+    feat[:, 1:] = model["mean"]
+    p = blob_score.probability(feat)
+    assert p.shape == (3,) and np.all((p > 0) & (p < 1))
+    bad = tmp_path / "old.json"
+    blob_score.save_model(bad, model)
+    bad.write_text(bad.read_text().replace('"bias"', '"constant"'))
+    with pytest.raises(ValueError, match="old.json"):
+        blob_score.load_model(str(bad))

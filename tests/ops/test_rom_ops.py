@@ -155,8 +155,6 @@ def test_initialize_from_rom_twice_adds_a_second_set(new_session, rom_file):
     assert np.isfinite(take.xyz[1, take.face_points()[80:]]).all(-1).sum() >= 78
 
 
-@pytest.mark.xfail(strict=False, reason="the committed blob detector puts 3 detections >1.5 px off their dots "
-                   "in this frame (issue 3's blob work); remove when the detector lands")
 def test_initialize_from_rom_detects_blobs_first(case, undo_check):
     """A frame never detected: its blobs are detected from the images (with the Blob Parameters)
     as part of the same undoable change; the ROM is then found among real blob detections."""
