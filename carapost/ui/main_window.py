@@ -163,8 +163,21 @@ class MainWindow(QMainWindow):
         self.splitDockWidget(self.docks["selected_point"], self.docks["log"], Qt.Orientation.Horizontal)
         self.docks["properties"].raise_()
         self.docks["labelling"].raise_()
-        self.resizeDocks([self.docks["properties"], self.docks["labelling"]], [380, 220], Qt.Orientation.Horizontal)
-        self.resizeDocks([self.docks["log"]], [170], Qt.Orientation.Vertical)
+        self._docks_sized = False
+
+    def _size_docks(self) -> None:
+        """Default pane sizes in proportion to the window (a small screen keeps room for the views)."""
+        w, h = self.width(), self.height()
+        self.resizeDocks([self.docks["properties"], self.docks["labelling"]],
+                         [int(min(max(0.26 * w, 200), 420)), int(min(max(0.14 * w, 150), 230))],
+                         Qt.Orientation.Horizontal)
+        self.resizeDocks([self.docks["log"]], [int(min(max(0.17 * h, 110), 180))], Qt.Orientation.Vertical)
+
+    def showEvent(self, event) -> None:  # type: ignore[no-untyped-def]  # noqa: N802
+        super().showEvent(event)
+        if not self._docks_sized:   # once, unless a saved window state placed them
+            self._docks_sized = True
+            self._size_docks()
 
     def _build_menus(self) -> None:
         bar = self.menuBar()
@@ -285,6 +298,11 @@ class MainWindow(QMainWindow):
             qa.setEnabled((has or not a.needs_take) and not (busy and a.edits))
         self.actions["edit.undo"].setEnabled(has and not busy and self.doc.undo.canUndo())
         self.actions["edit.redo"].setEnabled(has and not busy and self.doc.undo.canRedo())
+        for key, verb, text in (("edit.undo", "Undo", self.doc.undo.undoText()),
+                                ("edit.redo", "Redo", self.doc.undo.redoText())):
+            tip = f"{verb}: {text}" if text else f"{verb}: nothing to {verb.lower()}"
+            self.actions[key].setStatusTip(tip)   # the status bar names the command (menu text stays the guide's)
+            self.actions[key].setToolTip(tip)
         for key, on in (("view.blob_preview", self.doc.blob_preview), ("view.stabilized", self.doc.show_stabilized),
                         ("view.lock", self.doc.lock_to_point), ("view.full_screen", self.isFullScreen()),
                         ("edit.add_target", self.point_edit_mode == "Add Target Track"),
@@ -489,7 +507,7 @@ class MainWindow(QMainWindow):
         if geo is not None:
             self.restoreGeometry(geo)
         if state is not None:
-            self.restoreState(state, STATE_VERSION)
+            self._docks_sized = self.restoreState(state, STATE_VERSION)
 
     def save_settings(self) -> None:
         self.settings.save_window_state(self.saveGeometry(), self.saveState(STATE_VERSION))

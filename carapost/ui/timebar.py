@@ -28,7 +28,7 @@ class TimeSlider(QWidget):
         self.doc = doc
         self._drag: dict | None = None
         self.setMinimumHeight(30)
-        self.setMinimumWidth(200)
+        self.setMinimumWidth(120)
         for sig in (doc.frameChanged, doc.takeChanged, doc.sessionChanged, doc.selectionChanged):
             sig.connect(self.update)
 
@@ -156,7 +156,7 @@ class Timebar(QWidget):
         self.spin.valueChanged.connect(self.doc.set_frame)
         row.addWidget(self.spin)
         self.info = QLabel()
-        self.info.setMinimumWidth(150)
+        self.info.setMinimumWidth(1)   # shrinks (clipped) before the slider does in a small window
         row.addWidget(self.info)
         self.slider = TimeSlider(doc)
         row.addWidget(self.slider, 1)
@@ -229,5 +229,7 @@ class Timebar(QWidget):
             take = self.doc.take
             a, b = take.active_range
             self.info.setText(f"of {take.n_frames - 1}   #{take.first_frame_number + f}   active {a}-{b}")
+            self.info.setToolTip(f"Last frame {take.n_frames - 1}; frame number #{take.first_frame_number + f}; "
+                                 f"active range {a}-{b}")
         else:
             self.info.setText("")

@@ -37,6 +37,7 @@ class ViewSlot(QFrame):
         head = QHBoxLayout()
         head.setContentsMargins(4, 1, 2, 1)
         self.title = QLabel()
+        self.title.setMinimumWidth(1)   # a long sensor name is clipped, it does not widen the window
         head.addWidget(self.title, 1)
         self.sensor_button = QToolButton()
         self.sensor_button.setText("Sensor")
@@ -84,7 +85,9 @@ class ViewSlot(QFrame):
         return view
 
     def _update_title(self) -> None:
-        self.title.setText(self.view.title() if self.view is not None else "")
+        text = self.view.title() if self.view is not None else ""
+        self.title.setText(text)
+        self.title.setToolTip(text)
 
     def n_cameras(self) -> int:
         return self.doc.take.n_cameras if self.doc.has_take else 4

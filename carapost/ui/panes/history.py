@@ -24,6 +24,9 @@ class HistoryPane(QWidget):
         self.list = QListWidget()
         self.list.setObjectName("historyList")
         self.list.itemClicked.connect(self._clicked)
+        # long entries ("Detect Blobs [Current Frame]: 296 detections") end in "…"; the tooltip has all
+        self.list.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+        self.list.setTextElideMode(Qt.TextElideMode.ElideRight)
         lay.addWidget(self.list, 1)
         clear = QPushButton("Clear History")
         clear.clicked.connect(actions["edit.clear_history"].trigger)
@@ -47,9 +50,10 @@ class HistoryPane(QWidget):
         for i, (text, applied) in enumerate(self.entries()):
             item = QListWidgetItem(text)
             item.setData(Qt.ItemDataRole.UserRole, i + 1)
+            item.setToolTip(text)
             if not applied:
                 item.setForeground(UNDONE)
-                item.setToolTip("Undone: Edit > Redo (Ctrl+Y) applies it again")
+                item.setToolTip(f"{text}\nUndone: Edit > Redo (Ctrl+Y) applies it again")
             self.list.addItem(item)
         self.list.setCurrentRow(self.doc.undo.index())
 

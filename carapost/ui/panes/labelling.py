@@ -8,12 +8,11 @@ import logging
 import numpy as np
 from PySide6.QtCore import Qt
 from PySide6.QtGui import QAction, QColor
-from PySide6.QtWidgets import QAbstractItemView, QHBoxLayout, QListWidget, QListWidgetItem, QPushButton, QVBoxLayout, \
+from PySide6.QtWidgets import QAbstractItemView, QLabel, QListWidget, QListWidgetItem, QPushButton, QVBoxLayout, \
     QWidget
 
 from carapost.ops import labels as label_ops
 
-from .. import adapters
 from ..document import Document
 
 __all__ = ["LabellingPane", "UNASSIGNED", "ASSIGNED", "ABSENT", "label_states"]
@@ -42,7 +41,8 @@ class LabellingPane(QWidget):
         self.doc = doc
         lay = QVBoxLayout(self)
         lay.setContentsMargins(2, 2, 2, 2)
-        row = QHBoxLayout()
+        row = QVBoxLayout()   # stacked: the pane stays narrow without clipping the guide's texts
+        row.setSpacing(2)
         for key, text in (("edit.clear_labels", "Clear All Labels"), ("edit.delete_labels", "Delete Selected Labels")):
             b = QPushButton(text)
             b.setObjectName(key)
@@ -55,6 +55,12 @@ class LabellingPane(QWidget):
         self.list.setEditTriggers(QAbstractItemView.EditTrigger.DoubleClicked)
         self.list.itemChanged.connect(self._edited)
         lay.addWidget(self.list, 1)
+        self.empty = QLabel("No labels yet: File > Import Labels From Text File (or From Cara File)")
+        self.empty.setObjectName("labelsHint")
+        self.empty.setWordWrap(True)
+        self.empty.setAlignment(Qt.AlignmentFlag.AlignCenter)
+        self.empty.setStyleSheet("color: rgb(175, 178, 185);")
+        lay.addWidget(self.empty)
         self.assign = QPushButton("Assign To Selected Point")
         self.assign.setToolTip("Give the selected label to the (one) selected point")
         self.assign.clicked.connect(self.assign_selected)
@@ -79,6 +85,8 @@ class LabellingPane(QWidget):
                 self.list.addItem(item)
                 item.setSelected(lab in selected)
         self.list.blockSignals(False)
+        self.empty.setVisible(self.list.count() == 0)
+        self._states: list[str] = []   # the new items are coloured from scratch
         self.recolour()
 
     def states(self) -> list[str]:
@@ -89,13 +97,18 @@ class LabellingPane(QWidget):
         return label_states(take.labels, take.points.labels, present)
 
     def recolour(self) -> None:
+        """Colour the labels by state; only items whose state changed are touched (this runs on
+        every frame while scrubbing)."""
         self.list.blockSignals(True)
-        for i, state in enumerate(self.states()):
+        states = self.states()
+        known = self._states
+        for i, state in enumerate(states):
             item = self.list.item(i)
-            if item is not None:
+            if item is not None and (i >= len(known) or known[i] != state):
                 item.setForeground(self.COLOURS[state])
                 item.setToolTip({"unassigned": "Not assigned to a point", "assigned": "Assigned",
                                  "absent": "Assigned; the point has no data in this frame"}[state])
+        self._states = states
         self.list.blockSignals(False)
 
     def _edited(self, item: QListWidgetItem) -> None:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import logging
 
 from PySide6.QtCore import Qt
-from PySide6.QtWidgets import QComboBox, QHBoxLayout, QLabel, QTreeWidget, QTreeWidgetItem, QVBoxLayout, QWidget
+from PySide6.QtWidgets import QComboBox, QHBoxLayout, QHeaderView, QLabel, QTreeWidget, QTreeWidgetItem, QVBoxLayout, QWidget
 
 from carapost.model.params import PRESETS, SECTIONS
 from carapost.ops import settings as settings_ops
@@ -65,7 +65,14 @@ class PropertiesPane(QWidget):
             head.setExpanded(key in ("display", "blobs", "tracking"))
             if key == "export":   # the guide lists Shortcut after Export
                 self._shortcuts(shortcuts)
-        self.tree.setColumnWidth(0, 260)
+        # names take what the values leave: a narrow pane still shows every value
+        header = self.tree.header()
+        header.setStretchLastSection(False)
+        header.setSectionResizeMode(0, QHeaderView.ResizeMode.Stretch)
+        header.setSectionResizeMode(1, QHeaderView.ResizeMode.Fixed)
+        header.resizeSection(1, 100)
+        self.tree.setIndentation(12)
+        header.setMinimumSectionSize(60)
         doc.takeChanged.connect(self.refresh)
         doc.sessionChanged.connect(self.refresh)
         doc.busyChanged.connect(lambda _b: self.refresh())

@@ -10,6 +10,7 @@ from PySide6.QtGui import QColor, QMouseEvent, QPainter, QPen
 from PySide6.QtWidgets import QWidget
 
 from ..document import Document
+from ..views.base import draw_hint
 from ..views.continuity import ContinuityData, render_rows
 
 __all__ = ["SelectedPointPane"]
@@ -37,6 +38,15 @@ class SelectedPointPane(QWidget):
         cols = self.doc.selected_columns()
         return cols[0] if len(cols) == 1 else -1
 
+    def hint(self) -> str:
+        """What the empty pane says."""
+        if not self.doc.has_take:
+            return "No take open"
+        n = len(self.doc.selected_columns())
+        if n == 0:
+            return "Select one point to see its continuity in every sensor"
+        return f"{n} points selected: select one point to see its continuity in every sensor"
+
     def rows(self) -> list[tuple[int, int]]:
         col = self.point()
         if col < 0:
@@ -52,8 +62,7 @@ class SelectedPointPane(QWidget):
             p.fillRect(self.rect(), QColor(38, 40, 46))
             rows = self.rows() if self.doc.has_take else []
             if not rows:
-                p.setPen(QColor(150, 150, 150))
-                p.drawText(self.rect(), Qt.AlignmentFlag.AlignCenter, "Select one point")
+                draw_hint(p, QRectF(self.rect()), self.hint())
                 return
             take = self.doc.take
             f0, f1 = self._frames()

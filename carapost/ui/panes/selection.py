@@ -11,16 +11,25 @@ from ..document import Document
 __all__ = ["SelectionPane"]
 
 
+CHECKBOX_STYLE = ("QListWidget::indicator { width: 12px; height: 12px; border: 1px solid rgb(160, 162, 170);"
+                  " border-radius: 2px; background: rgb(62, 64, 70); }"
+                  " QListWidget::indicator:checked { background: rgb(255, 140, 0); border-color: rgb(255, 200, 120); }")
+
+
 class SelectionPane(QWidget):
     def __init__(self, doc: Document, parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.doc = doc
         lay = QVBoxLayout(self)
         lay.setContentsMargins(2, 2, 2, 2)
-        lay.addWidget(QLabel("Channels (explicit camera selection):"))
+        head = QLabel("Channels (explicit camera selection):")
+        head.setWordWrap(True)   # a narrow dock wraps the text instead of widening the window
+        lay.addWidget(head)
         self.cameras = QListWidget()
         self.cameras.setObjectName("selectionCameras")
         self.cameras.itemChanged.connect(self._changed)
+        # the dark Fusion palette draws item check boxes in the list's own colour: make them visible
+        self.cameras.setStyleSheet(CHECKBOX_STYLE)
         lay.addWidget(self.cameras, 1)
         row = QHBoxLayout()
         clear = QPushButton("Clear Channel Selection")

@@ -3,8 +3,9 @@
 
 from __future__ import annotations
 
+from PySide6.QtCore import Qt
 from PySide6.QtGui import QAction
-from PySide6.QtWidgets import QFormLayout, QGridLayout, QGroupBox, QToolButton, QVBoxLayout, QWidget
+from PySide6.QtWidgets import QFormLayout, QFrame, QGridLayout, QGroupBox, QScrollArea, QSizePolicy, QToolButton, QVBoxLayout, QWidget
 
 from ..document import Document
 from .param_editors import SectionEditors
@@ -23,18 +24,37 @@ class TrackerPane(QWidget):
     def __init__(self, doc: Document, actions: dict[str, QAction], parent: QWidget | None = None) -> None:
         super().__init__(parent)
         self.doc = doc
-        lay = QVBoxLayout(self)
+        outer = QVBoxLayout(self)
+        outer.setContentsMargins(0, 0, 0, 0)
+        scroll = QScrollArea()   # scrolls rather than widening the dock area in a small window
+        scroll.setWidgetResizable(True)
+        scroll.setFrameShape(QFrame.Shape.NoFrame)
+        outer.addWidget(scroll)
+        inner = QWidget()
+        scroll.setWidget(inner)
+        lay = QVBoxLayout(inner)
         lay.setContentsMargins(2, 2, 2, 2)
         grid = QGridLayout()
+        grid.setSpacing(3)
         self.buttons: dict[str, QToolButton] = {}
         for i, key in enumerate(BUTTONS):
+            act = actions[key]
             b = QToolButton()
-            b.setDefaultAction(actions[key])
             if key in SHORT:
+                # the short arrow text stays (a default action would put its long text back)
                 b.setText(SHORT[key])
+                b.setToolTip(act.text().lstrip("<> "))
+                b.clicked.connect(act.trigger)
+                act.changed.connect(lambda b=b, a=act: b.setEnabled(a.isEnabled()))
+                b.setEnabled(act.isEnabled())
+                b.setMinimumWidth(36)
+                grid.addWidget(b, 0, i)
+            else:
+                b.setDefaultAction(act)
+                b.setToolButtonStyle(Qt.ToolButtonStyle.ToolButtonTextOnly)
+                b.setSizePolicy(QSizePolicy.Policy.Expanding, QSizePolicy.Policy.Fixed)
+                grid.addWidget(b, 1 + i - len(SHORT), 0, 1, len(SHORT))
             b.setObjectName(key)
-            grid.addWidget(b, 0 if key in SHORT else 1 + (i - 4) // 2, i if key in SHORT else (i - 4) % 2 * 2, 1,
-                           1 if key in SHORT else 2)
             self.buttons[key] = b
         lay.addLayout(grid)
         self.settings_button = QToolButton()
@@ -44,6 +64,7 @@ class TrackerPane(QWidget):
         lay.addWidget(self.settings_button)
         self.box = QGroupBox("Settings")
         form = QFormLayout(self.box)
+        form.setRowWrapPolicy(QFormLayout.RowWrapPolicy.WrapLongRows)   # narrow pane: editor under its label
         self.editors = SectionEditors(doc, "tracker")
         for f in self.editors.fields():
             form.addRow(f.metadata["label"], self.editors.editors[f.name])

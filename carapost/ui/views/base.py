@@ -5,13 +5,23 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
-from PySide6.QtCore import Qt, Signal
-from PySide6.QtGui import QAction, QWheelEvent
+from PySide6.QtCore import QRectF, Qt, Signal
+from PySide6.QtGui import QAction, QColor, QPainter, QWheelEvent
 from PySide6.QtWidgets import QMenu, QWidget
 
 from ..document import Document
 
-__all__ = ["BaseView", "add_toggle", "add_action", "plain_right_click"]
+__all__ = ["BaseView", "add_toggle", "add_action", "plain_right_click", "draw_hint", "NO_TAKE"]
+
+#: What an empty view says (an artist opening the program sees how to start).
+NO_TAKE = "No take open\nFile > Open (Ctrl+O): a .cara project or one .pico file of a take"
+
+
+def draw_hint(p: QPainter, rect: QRectF, text: str, *, top: bool = False) -> None:
+    """Grey hint text in an empty view or pane: centred, or at the top (over a drawing)."""
+    p.setPen(QColor(175, 178, 185))
+    align = (Qt.AlignmentFlag.AlignHCenter | Qt.AlignmentFlag.AlignTop) if top else Qt.AlignmentFlag.AlignCenter
+    p.drawText(rect.adjusted(8, 8, -8, -8), int(align | Qt.TextFlag.TextWordWrap), text)
 
 
 def add_toggle(menu: QMenu, text: str, checked: bool, slot: Callable[[bool], None]) -> QAction:

@@ -8,19 +8,21 @@ pen (see :mod:`carapost.ui.views.paths`), so hundreds of marks cost a handful of
 from __future__ import annotations
 
 import numpy as np
-from PySide6.QtCore import QPointF, Qt
-from PySide6.QtGui import QColor, QPainter, QPen, QStaticText
+from PySide6.QtCore import Qt
+from PySide6.QtGui import QColor, QPainter, QPen
 
 from carapost.model.take import ObsSource
 
 from .. import queries
 from .camera_overlay import Overlay, project_points
+from .labels import LabelPainter
 from .paths import PathBuilder, affine, outlines_path, segments_path
 
 __all__ = ["OverlayPainting", "RED", "BLUE", "YELLOW", "ORANGE", "GREEN", "SELECT", "PALE_BLUE", "MARK", "pen"]
 
 RED, BLUE, YELLOW, ORANGE = QColor(230, 40, 40), QColor(70, 150, 255), QColor(255, 225, 0), QColor(255, 140, 0)
 GREEN, SELECT, PALE_BLUE = QColor(0, 220, 70), QColor(0, 255, 255), QColor(170, 210, 255)
+HALO = QColor(0, 0, 0)  #: drawn under selected marks (opaque: no blending cost)
 MARK = 6.0          # largest half-size of projection marks, screen px
 
 
@@ -32,10 +34,12 @@ def pen(colour: QColor, width: float = 1.2, style: Qt.PenStyle = Qt.PenStyle.Sol
 
 
 class OverlayPainting:
-    """Painting methods; the view provides ``doc``, ``camera``, ``scale``, ``options``, ``_hover``
-    and ``_texts``."""
+    """Painting methods; the view provides ``doc``, ``camera``, ``scale``, ``options``,
+    ``fast``, ``_hover`` and ``_labels``."""
 
     scale: float
+    fast: bool
+    _labels: LabelPainter
 
     @property
     def mark(self) -> float:
@@ -105,6 +109,23 @@ class OverlayPainting:
                 ox, oy = queries.circle_outlines(s[selu, 0], s[selu, 1], self.mark + 2)
                 p.drawPath(outlines_path(ox, oy))
 
+    def _paint_selection(self, p: QPainter, M: np.ndarray, ov: Overlay, sel_cols: set[int]) -> None:
+        """A ring of fixed screen size around each selected point (observation, else projection),
+        white over a dark halo, so the selection is found at a glance at any zoom and on the brim."""
+        if not sel_cols:
+            return
+        cols = np.fromiter(sel_cols, np.int64)
+        xy = affine(M, ov.point_xy(self.doc.take.n_points)[cols[cols < self.doc.take.n_points]])
+        xy = xy[np.isfinite(xy).all(1)]
+        if len(xy) == 0:
+            return
+        ox, oy = queries.circle_outlines(xy[:, 0], xy[:, 1], max(self.mark + 5.0, 9.0), n=16)
+        path = outlines_path(ox, oy)
+        p.setPen(pen(HALO, 4.5))
+        p.drawPath(path)
+        p.setPen(pen(QColor(255, 255, 255), 1.8))
+        p.drawPath(path)
+
     def _paint_sticks(self, p: QPainter, M: np.ndarray, ov: Overlay) -> None:
         take = self.doc.take
         xy = affine(M, ov.point_xy(take.n_points))
@@ -158,24 +179,14 @@ class OverlayPainting:
         if disp.point_labels_preselected and self._hover >= 0:
             show.add(self._hover)
         if not show:
+            self._labels.boxes = np.zeros((0, 4))
             return
         xy = affine(M, ov.point_xy(take.n_points))
         font = p.font()
         font.setPointSize(int(disp.font_size))
-        p.setFont(font)
-        p.setPen(QColor(255, 255, 255))
-        cols = np.array(sorted(show), np.int64)
+        # selected first, then the pre-selected one, then the rest: they get the best places
+        cols = np.array(sorted(show, key=lambda c: (c not in sel_cols, c != self._hover, c)), np.int64)
         cols = cols[np.isfinite(xy[cols]).all(1)]
-        ascent = p.fontMetrics().ascent()
-        for c in cols.tolist():
-            at = QPointF(xy[c, 0] + self.mark + 2, xy[c, 1] - self.mark - ascent)
-            p.drawStaticText(at, self._static(take.points.name(c)))
-
-    def _static(self, text: str) -> QStaticText:
-        st = self._texts.get(text)
-        if st is None:
-            if len(self._texts) > 4096:
-                self._texts.clear()
-            st = self._texts[text] = QStaticText(text)
-            st.setPerformanceHint(QStaticText.PerformanceHint.AggressiveCaching)
-        return st
+        names = [take.points.name(c) for c in cols.tolist()]
+        self._labels.draw(p, xy[cols], names, mark=self.mark + 1.5, font=font, obstacles=xy,
+                          highlight=[c in sel_cols for c in cols.tolist()], reuse=self.fast)

@@ -17,15 +17,16 @@ import logging
 
 import numpy as np
 from PySide6.QtCore import QPointF, QRectF, Qt, QTimer
-from PySide6.QtGui import QBrush, QColor, QImage, QMouseEvent, QPainter, QStaticText, QTransform, QWheelEvent
+from PySide6.QtGui import QBrush, QColor, QImage, QMouseEvent, QPainter, QTransform, QWheelEvent
 from PySide6.QtWidgets import QMenu, QWidget
 
 from .. import queries
 from ..document import Document
-from .base import BaseView, add_action, add_toggle, plain_right_click
+from .base import NO_TAKE, BaseView, add_action, add_toggle, draw_hint, plain_right_click
 from .blob_preview import BlobPreviewer
 from .camera_overlay import Overlay, compute_overlay, image_size
 from .camera_paint import GREEN, ORANGE, YELLOW, OverlayPainting, pen
+from .labels import LabelPainter
 from .paths import affine, outlines_path, polygon
 
 __all__ = ["CameraView", "rotation_matrix"]
@@ -70,7 +71,7 @@ class CameraView(OverlayPainting, BaseView):
         self._hover = -1
         self._pixel: tuple[float, float, int] | None = None
         self._qimage: tuple[tuple, QImage] | None = None
-        self._texts: dict[str, QStaticText] = {}
+        self._labels = LabelPainter()
         self.fast = False                  # while scrubbing: no antialiasing, smooth again when idle
         self._settle = QTimer(self)
         self._settle.setSingleShot(True)
@@ -229,9 +230,8 @@ class CameraView(OverlayPainting, BaseView):
     def _paint(self, p: QPainter) -> None:
         p.fillRect(self.rect(), QColor(60, 60, 60))
         if not self._valid_camera():
-            p.setPen(QColor(200, 200, 200))
-            p.drawText(self.rect(), Qt.AlignmentFlag.AlignCenter, "No take open" if not self.doc.has_take
-                       else f"The take has no sensor {self.camera}")
+            draw_hint(p, QRectF(self.rect()), NO_TAKE if not self.doc.has_take
+                      else f"The take has no sensor {self.camera}")
             return
         take, f = self.doc.take, self.doc.frame
         M = self.image_to_widget()
@@ -270,6 +270,7 @@ class CameraView(OverlayPainting, BaseView):
         if self.options["ROM"] and self.doc.rom is not None:
             self._paint_rom(p, M)
         self._paint_keyframes(p, M)
+        self._paint_selection(p, M, ov, sel_cols)
         self._paint_labels(p, M, ov, sel_cols)
         self._paint_hud(p, M)
 

@@ -19,7 +19,7 @@ from carapost.ops import settings as settings_ops
 
 from .. import queries
 from ..document import Document
-from .base import BaseView, add_action, plain_right_click
+from .base import NO_TAKE, BaseView, add_action, draw_hint, plain_right_click
 
 __all__ = ["ContinuityView", "ContinuityData", "render_rows", "CONTINUITY_LUT", "SENSOR_LUT"]
 
@@ -38,7 +38,7 @@ SENSOR_LUT[[queries.S_BLOB, queries.S_PATCH, queries.S_KEYFRAME]] = [_rgb(20, 60
 _t = np.linspace(0, 1, queries.N_TARGET_LEVELS)
 SENSOR_LUT[queries.S_TARGET0:] = [_rgb(int(230 * (1 - v)), int(60 + 170 * v), 30) for v in _t]
 LABEL_W = 130
-ROW_H, SENSOR_H, GAP_H = 13, 7, 2
+ROW_H, SENSOR_H, GAP_H = 13, 10, 2
 
 
 class ContinuityData:
@@ -231,8 +231,11 @@ class ContinuityView(BaseView):
     def paint(self, p: QPainter, width: int, height: int) -> None:
         p.fillRect(0, 0, width, height, QColor(BACKGROUND))
         if not self.doc.has_take:
-            p.setPen(QColor(200, 200, 200))
-            p.drawText(QRectF(0, 0, width, height), Qt.AlignmentFlag.AlignCenter, "No take open")
+            draw_hint(p, QRectF(0, 0, width, height), NO_TAKE)
+            return
+        if self.doc.take.n_points == 0:
+            draw_hint(p, QRectF(0, 0, width, height), "No points yet\n(Process > Initialize 3D, or Edit > Create"
+                      " Points From Detections)")
             return
         take = self.doc.take
         rows, h, tops = self._layout()
@@ -256,13 +259,18 @@ class ContinuityView(BaseView):
             p.fillRect(QRectF(xb, 0, width - xb, height), shade)
         sel = set(self.doc.selected_columns())
         font = p.font()
-        font.setPointSize(8)
-        p.setFont(font)
+        font.setPixelSize(11)
+        small = p.font()
+        small.setPixelSize(SENSOR_H - 1)   # sensor rows: the text fits its row (no overlap)
         for i in vis:
             col, cam = rows[i]
             y = tops[i] - y0
-            if col in sel and cam < 0:
+            p.setFont(font if cam < 0 else small)
+            if col in sel and cam < 0:   # the selected point's name and an outline round its bar
                 p.fillRect(QRectF(0, y - 1, LABEL_W - 2, h[i] + 2), QColor(60, 90, 150))
+                p.setPen(QPen(QColor(120, 170, 255), 1))
+                p.setBrush(Qt.BrushStyle.NoBrush)
+                p.drawRect(QRectF(LABEL_W - 1.5, y - 1.5, width - LABEL_W + 0.5, h[i] + 2))
             p.setPen(QColor(230, 230, 230) if cam < 0 else QColor(160, 160, 170))
             text = take.points.name(col) if cam < 0 else f"    Sensor {cam}"
             p.drawText(QRectF(4, y, LABEL_W - 8, h[i]), Qt.AlignmentFlag.AlignVCenter, text)

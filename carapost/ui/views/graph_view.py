@@ -12,12 +12,12 @@ import logging
 import numpy as np
 import pyqtgraph as pg
 from PySide6.QtCore import Qt, Signal
-from PySide6.QtWidgets import QApplication, QMenu, QVBoxLayout, QWidget
+from PySide6.QtWidgets import QApplication, QLabel, QMenu, QVBoxLayout, QWidget
 
 from carapost.ops import settings as settings_ops
 
 from ..document import Document
-from .base import BaseView, add_action, add_toggle, plain_right_click
+from .base import NO_TAKE, BaseView, add_action, add_toggle, plain_right_click
 
 __all__ = ["GraphView"]
 
@@ -25,6 +25,14 @@ log = logging.getLogger("carapost")
 
 COLOURS = ((230, 60, 60), (60, 200, 60), (80, 140, 255))
 MAX_POINTS = 12  #: plotted at most (the first selected)
+AXIS_W = 62      #: width of the value axes, px (equal, so the two plots' frames line up)
+
+
+def _axis_label(axes: str, unit: str) -> str:
+    """``x y z (mm)`` with each coordinate in its curve colour (the legend of the plot; mm is
+    the 3D plot, px the 2D one). Short, so it fits beside a low plot."""
+    spans = " ".join(f'<span style="color:#{r:02x}{g:02x}{b:02x}">{a}</span>' for a, (r, g, b) in zip(axes, COLOURS))
+    return f"{spans} ({unit})"
 
 
 class _ViewBox(pg.ViewBox):
@@ -82,17 +90,19 @@ class GraphView(BaseView):
         self.plots: dict[str, pg.PlotItem] = {}
         self.lines: dict[str, pg.InfiniteLine] = {}
         self.regions: dict[str, pg.LinearRegionItem] = {}
-        for row, (key, label) in enumerate((("recon", "3D (mm)"), ("track", "2D (px)"))):
+        for row, (key, label) in enumerate((("recon", _axis_label("xyz", "mm")), ("track", _axis_label("xy", "px")))):
             vb = _ViewBox()
             vb.menuRequested.connect(self.request_context_menu)
             plot = self.canvas.addPlot(row=row, col=0, viewBox=vb)
             plot.setMenuEnabled(False)
             plot.hideButtons()
             plot.setLabel("left", label)
+            plot.getAxis("left").setWidth(AXIS_W)   # both frame axes start at the same x
             plot.showGrid(x=True, y=True, alpha=0.2)
             plot.setDownsampling(auto=True, mode="peak")
             plot.setClipToView(True)
             vb.rangeDragged.connect(self._range_dragged)
+            vb.sigRangeChangedManually.connect(self._zoomed_by_hand)
             region = pg.LinearRegionItem(movable=False, brush=pg.mkBrush(70, 130, 200, 40),
                                          pen=pg.mkPen(None))
             region.setZValue(-10)
@@ -105,6 +115,13 @@ class GraphView(BaseView):
         self.plots["track"].setXLink(self.plots["recon"])
         self.plots["track"].setLabel("bottom", "frame")
         self._curves: list[tuple[pg.PlotItem, pg.PlotDataItem]] = []
+        self._fitted = True    # frames follow the view range until the user zooms or pans
+        self.hint = QLabel(self)   # what to do when there is nothing to plot
+        self.hint.setObjectName("graphHint")
+        self.hint.setAlignment(Qt.AlignmentFlag.AlignCenter)
+        self.hint.setWordWrap(True)
+        self.hint.setStyleSheet("color: rgb(175, 178, 185); background: transparent;")
+        self.hint.setAttribute(Qt.WidgetAttribute.WA_TransparentForMouseEvents, True)
         self.rebuild()
 
     def title(self) -> str:
@@ -123,12 +140,26 @@ class GraphView(BaseView):
         self.plots["recon"].setVisible(self.show_recon)
         self.plots["track"].setVisible(self.show_track)
         if not self.doc.has_take:
+            self._set_hint(NO_TAKE)
+            for plot in self.plots.values():
+                plot.setTitle(None)
             return
         take = self.doc.take
+        cols = self.doc.selected_columns()
+        self._set_hint("" if cols else "Select points to graph them\n(click, Ctrl+click or drag a box in a camera or"
+                       " 3D view, or click a row of the continuity chart)")
+        names = [take.points.name(c) for c in cols[:MAX_POINTS]]
+        title = ""
+        if names:
+            title = f"{names[0]} (solid)" + (f", {', '.join(names[1:4])}{' …' if len(names) > 4 else ''} (dashed)"
+                                              if len(names) > 1 else "")
+            if len(cols) > MAX_POINTS:
+                title += f" — first {MAX_POINTS} of {len(cols)}"
+        self.plots["recon"].setTitle(title or None, size="9pt", color="#c8c8c8")
         frames = np.arange(take.n_frames, dtype=float)
         xyz_all = take.xyz_stabilized if self.doc.show_stabilized else take.xyz
         cam = self.camera if 0 <= self.camera < take.n_cameras else -1
-        for i, col in enumerate(self.doc.selected_columns()[:MAX_POINTS]):
+        for i, col in enumerate(cols[:MAX_POINTS]):
             style = Qt.PenStyle.SolidLine if i == 0 else Qt.PenStyle.DashLine
             for k in range(3):
                 pen = pg.mkPen(COLOURS[k], width=1.5, style=style)
@@ -146,10 +177,31 @@ class GraphView(BaseView):
         self.on_frame(self.doc.frame)
         self.fit_to_data()
 
+    def _set_hint(self, text: str) -> None:
+        """Show ``text`` instead of the (empty) plots, or the plots when ``text`` is empty."""
+        self.hint.setText(text)
+        self.hint.setVisible(bool(text))
+        self.canvas.setVisible(not text)
+        self._place_hint()
+
+    def _place_hint(self) -> None:
+        self.hint.setGeometry(20, 0, max(self.width() - 40, 10), self.height())
+        self.hint.raise_()
+
+    def resizeEvent(self, event) -> None:  # type: ignore[no-untyped-def]  # noqa: N802
+        super().resizeEvent(event)
+        self._place_hint()
+        if self._fitted:   # a range set before the plots were laid out is off by the axis widths
+            self.fit_to_data()
+
+    def _zoomed_by_hand(self, *_args: object) -> None:
+        self._fitted = False
+
     def fit_to_data(self) -> None:
         if not self.doc.has_take:
             return
         a, b = self.doc.take.view_range
+        self._fitted = True
         for plot in self.plots.values():
             plot.enableAutoRange(axis="y")
             plot.setXRange(a, b, padding=0.01)

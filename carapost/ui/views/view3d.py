@@ -18,7 +18,8 @@ from carapost.model.take import PointKind, Recon
 
 from .. import queries
 from ..document import Document
-from .base import BaseView, add_action, add_toggle, plain_right_click
+from .base import NO_TAKE, BaseView, add_action, add_toggle, draw_hint, plain_right_click
+from .labels import LabelPainter
 from .paths import outlines_path, segments_path
 
 __all__ = ["View3D", "RECON_COLOURS"]
@@ -61,6 +62,7 @@ class View3D(BaseView):
         self.distance = 400.0
         self._fitted = False
         self._drag: dict | None = None
+        self._labels = LabelPainter()
         self.setMinimumSize(120, 90)
         self.setMouseTracking(False)
         self.setContextMenuPolicy(Qt.ContextMenuPolicy.CustomContextMenu)
@@ -145,11 +147,13 @@ class View3D(BaseView):
         try:
             p.fillRect(self.rect(), QColor(38, 40, 46))
             if not self.doc.has_take:
-                p.setPen(QColor(200, 200, 200))
-                p.drawText(self.rect(), Qt.AlignmentFlag.AlignCenter, "No take open")
+                draw_hint(p, QRectF(self.rect()), NO_TAKE)
                 return
             p.setRenderHint(QPainter.RenderHint.Antialiasing, True)
             self._paint(p)
+            if not np.isfinite(self._xyz()).any():
+                draw_hint(p, QRectF(self.rect()), "No 3D points in this frame\n(Process > Initialize 3D, or track"
+                          " into this frame)", top=True)
         finally:
             p.end()
 
@@ -257,13 +261,13 @@ class View3D(BaseView):
         show = set(sel.tolist()) if disp.point_labels_selected else set()
         if self.options["Point Labels :All"] or disp.point_labels_all:
             show |= {c for c in range(take.n_points) if take.points.labels[c]}
+        sel_set = set(sel.tolist())
+        cols = np.array(sorted(show, key=lambda c: (c not in sel_set, c)), np.int64)
+        cols = cols[np.isfinite(s[cols]).all(1)] if len(cols) else cols
         font = p.font()
         font.setPointSize(int(disp.font_size))
-        p.setFont(font)
-        p.setPen(QColor(255, 255, 255))
-        for c in sorted(show):
-            if np.isfinite(s[c]).all():
-                p.drawText(QPointF(s[c, 0] + 7, s[c, 1] - 5), take.points.name(c))
+        self._labels.draw(p, s[cols], [take.points.name(c) for c in cols.tolist()], mark=RADIUS + 3, font=font,
+                          obstacles=s, highlight=[c in sel_set for c in cols.tolist()])
 
     # ------------------------------------------------------------------ mouse
     def mousePressEvent(self, e: QMouseEvent) -> None:  # noqa: N802
