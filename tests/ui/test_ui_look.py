@@ -263,3 +263,33 @@ def test_undo_redo_name_the_command(loaded):
     assert name and undo.statusTip() == f"Undo: {name}"
     undo.trigger()
     assert redo.statusTip() == f"Redo: {name}" and undo.statusTip() == "Undo: nothing to undo"
+
+
+def test_3d_view_draws_near_points_over_far_ones(qtbot, points):
+    from carapost.model.take import Recon
+    from carapost.ui.views.view3d import RECON_COLOURS
+
+    w = points
+    take = w.doc.take
+    f = w.doc.frame
+    w.workspace.set_layout(1)
+    view = w.workspace.slots[0].set_view("3d")
+    view.options["Point Labels :All"] = False
+    view.fit()
+    view.yaw = view.pitch = 0.0
+    # two points on the line of sight through the view's target: one 20 mm nearer the eye
+    near, far = 0, 1
+    take.xyz[f, far] = view.target
+    take.xyz[f, near] = view.target + np.array([0.0, 0.0, 20.0])
+    take.recon[f, near], take.recon[f, far] = Recon.SINGLE_SENSOR, Recon.MULTI_VIEW
+    w.doc.clear_selection()
+    w.doc.notify_take_changed()
+    for swap in (False, True):                     # the colour (drawing order by type) must not decide
+        if swap:
+            take.recon[f, [near, far]] = take.recon[f, [far, near]]
+            w.doc.notify_take_changed()
+        px = _pixels(view)                           # (lays the view out: project after it)
+        s = view.project(take.xyz[f, [near]])[0]
+        rgb = px[int(round(s[1])), int(round(s[0]))]
+        want = RECON_COLOURS[Recon(int(take.recon[f, near]))]
+        assert np.abs(rgb - [want.red(), want.green(), want.blue()]).max() < 40, rgb
