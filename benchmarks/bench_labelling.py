@@ -133,7 +133,8 @@ def _disputed(pts, labels, truth, group, M, reference: int, tau: float = 3.0) ->
 def _methods(pts, truth, h, M, skeleton=None, group=None, reference=None) -> dict:
     out = {}
     r, dt = _timed(lambda: label_assignment(pts, h, M))
-    out["assignment"] = {**_score(r.labels, truth, group), "fps": round(len(pts) / dt)}
+    out["assignment"] = {**_score(r.labels, truth, group), "fps": round(len(pts) / dt),
+                         "rigid_renamed": r.report.get("rigid_renamed", 0), "shape_repairs": r.report.get("shape_repairs", 0)}
     if reference is not None:
         out["assignment"].update(_disputed(pts, r.labels, truth, group, M, reference))
     r, dt = _timed(lambda: label_nearest(pts, h, M, skeleton=skeleton))

@@ -24,7 +24,9 @@
    occupied marker than half a missing marker's spacing, stays unlabelled.
 4. Optionally (default) :func:`~carapost.core.swaps.detect_swaps` checks the result, trusting
    the reference frame, and its repairs are applied.
-5. Optionally (default) the shape check (:mod:`carapost.core.label_shape`) re-identifies
+5. Optionally (default) the rigid-group check (:mod:`carapost.core.label_rigid`) names
+   returning rigid clusters as a whole, from the mutual distances of their points.
+6. Optionally (default) the shape check (:mod:`carapost.core.label_shape`) re-identifies
    markers against the rigid shape around the reference frame: it undoes confusions that
    continuity alone never undoes (fast motion, a source's own inconsistent labels).
 """
@@ -32,12 +34,16 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from .label_engine import AssignmentEngine, AssignmentParams, kabsch, motion_scales
 from .label_tracks import Tracklets, build_tracklets, link_frames
 from .labelling import LabelResult, ProgressFn, check_hints, check_points
+
+if TYPE_CHECKING:
+    from .label_rigid import RigidGroups
 
 __all__ = ["AssignmentParams", "AssignmentEngine", "label_assignment", "kabsch", "motion_scales"]
 
@@ -46,8 +52,8 @@ __all__ = ["AssignmentParams", "AssignmentEngine", "label_assignment", "kabsch",
 def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: int, *,
                      template: np.ndarray | None = None, ignore: Sequence[int] = (),
                      params: AssignmentParams | None = None, ratio: float = 0.5, passes: int = 2,
-                     repair_swaps: bool = True, shape_check: bool = True, shape_tolerance: float = 0.5,
-                     progress: ProgressFn | None = None) -> LabelResult:
+                     repair_swaps: bool = True, rigid_check: bool = True, shape_check: bool = True,
+                     shape_tolerance: float = 0.5, progress: ProgressFn | None = None) -> LabelResult:
     """Label unlabelled point clouds (the default method).
 
     Parameters
@@ -70,6 +76,10 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
         Linking (see :func:`~carapost.core.label_tracks.link_frames`).
     repair_swaps : bool
         Run :func:`~carapost.core.swaps.detect_swaps` on the result and apply its repairs.
+    rigid_check : bool
+        Then rename pieces of tracklets that rigid fits of the marker set's rigid groups
+        clearly name otherwise (:func:`~carapost.core.label_rigid.rigid_relabel`): rigid
+        clusters that vanished and came back under other names.
     shape_check : bool
         Then re-identify markers against the shape around the reference frame
         (:func:`~carapost.core.label_shape.shape_relabels`) and apply its repairs; where it
@@ -84,7 +94,8 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
     -------
     LabelResult
         ``report``: ``reference_frame``, ``tracklets``, ``events``, ``unlabelled_points``,
-        ``link_residual_mm`` (median, p90), ``swaps_repaired``, ``shape_repairs``, ``conflicts``.
+        ``link_residual_mm`` (median, p90), ``swaps_repaired``, ``rigid_renamed``,
+        ``shape_repairs``, ``conflicts``.
 
     Raises
     ------
@@ -163,16 +174,57 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
         if keep:
             labels = relabel_points(labels, keep)
             report["swaps_repaired"] = len(keep)
+    groups = None
+    if rigid_check:
+        labels, groups, rrep = _rigid_check(pts, labels, tracks, h, n_markers, t0, ign)
+        report["rigid_renamed"] = rrep["pieces_renamed"]
     if shape_check:
         labels, n_shape = _shape_check(pts, labels, tracks, h, n_markers, t0, ign,
-                                       shape_tolerance if repair_swaps else None)
+                                       shape_tolerance if repair_swaps else None, groups)
         report["shape_repairs"] = n_shape
     report["unlabelled_points"] = int((valid & (labels < 0)).sum())
     return LabelResult(labels, report)
 
 
+def _rigid_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: np.ndarray, n_markers: int,
+                 t0: int, ign: np.ndarray) -> tuple[np.ndarray, RigidGroups, dict]:
+    """Rename returning rigid clusters (:func:`~carapost.core.label_rigid.rigid_relabel`) with
+    the rigid groups (of 3 or more markers) of the trusted frames around ``t0``; hinted points
+    keep their labels. Returns the labels, the rigid groups (the shape check's veto) and the
+    report."""
+    from .label_rigid import rigid_groups, rigid_relabel
+    F = pts.shape[0]
+    xyz, fr, trusted = _trusted_frames(pts, labels, tracks, n_markers, t0, ign)
+    whole = np.unique(np.linspace(0, F - 1, min(F, 100)).astype(int))
+    groups = rigid_groups(xyz, fr, trusted=trusted, check_frames=whole)
+    labels, rep = rigid_relabel(pts, labels, tracks.tid, groups, protected=hints >= 0)
+    return labels, groups, rep
+
+
+def _trusted_frames(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, n_markers: int, t0: int,
+                    ign: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Labelled trajectories (F, M, 3), up to 91 frames around ``t0`` and which of their
+    samples are trusted (between the nearest tracklet changes, see
+    :func:`~carapost.core.label_shape.reference_model`)."""
+    from .label_shape import _trusted_spans
+    F = pts.shape[0]
+    xyz = np.full((F, n_markers, 3), np.nan)
+    pieces = np.full((F, n_markers), -1, np.int64)
+    f, j = np.nonzero(labels >= 0)
+    xyz[f, labels[f, j]] = pts[f, j]
+    pieces[f, labels[f, j]] = tracks.tid[f, j]
+    xyz[:, ign] = np.nan
+    lo, hi = _trusted_spans(xyz, pieces, t0, 100)
+    a, b = int(lo.min()), int(hi.max()) + 1
+    # every frame near t0 (where most markers' trusted spans are), a sample of the rest
+    near = np.arange(max(a, t0 - 25), min(b, t0 + 26))
+    fr = np.unique(np.concatenate([near, np.linspace(a, b - 1, min(b - a, 40)).astype(int)]))
+    return xyz, fr, (fr[:, None] >= lo[None]) & (fr[:, None] <= hi[None])
+
+
 def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: np.ndarray, n_markers: int,
-                 t0: int, ign: np.ndarray, tolerance: float | None) -> tuple[np.ndarray, int]:
+                 t0: int, ign: np.ndarray, tolerance: float | None,
+                 groups: RigidGroups | None = None) -> tuple[np.ndarray, int]:
     """Re-identify against the shape around frame ``t0``, then repair swaps by continuity again.
 
     :func:`~carapost.core.label_shape.shape_relabels` repairs the labels that contradict the
@@ -180,8 +232,11 @@ def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: 
     repairs, by motion continuity, the short confusions left between them (during fast motion
     the shape says little), keeping only repairs that do not break the shape (shape gain at
     least ``-tolerance`` per frame and marker; ``None``: no second swap repair); if it
-    repaired something, the shape check runs once more. No repair moves a hinted point.
-    Returns the labels and the number of repairs applied.
+    repaired something, the shape check runs once more; then once with runs of single frames
+    (short confusions during fast motion). No repair moves a hinted point, nor
+    (with the rigid ``groups``) permutes markers of one rigid group that its other members
+    cannot check (:func:`~carapost.core.label_rigid.keeps_rigid_groups`). Returns the labels
+    and the number of repairs applied.
     """
     from .label_shape import reference_model, relabel_gain, shape_relabels
     from .swaps import apply_relabel, detect_swaps, relabel_points
@@ -199,7 +254,15 @@ def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: 
         fr = hinted_frames[(hinted_frames >= r.start) & (hinted_frames < r.end)]
         return bool(np.isin(hints[fr], r.markers).any())
 
-    keep = [r for r in shape_relabels(xyz, t0, pieces=pieces, fixed=fixed, model=model) if not moves_hint(r)]
+    from .label_rigid import keeps_rigid_groups
+
+    def rigid_ok(x: np.ndarray, r, gain: float) -> bool:
+        return keeps_rigid_groups(x, r, groups)
+
+    accept = rigid_ok if groups is not None and len(groups) else None
+
+    keep = [r for r in shape_relabels(xyz, t0, pieces=pieces, fixed=fixed, model=model, accept=accept)
+            if not moves_hint(r)]
     if not keep:
         return labels, 0
     if tolerance is None:
@@ -207,12 +270,21 @@ def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: 
     xyz = apply_relabel(xyz, keep)
     n0 = len(keep)
     for r in detect_swaps(xyz, fixed=fixed, reference_frame=t0).relabels:
-        if not moves_hint(r) and relabel_gain(xyz, model, r) >= -tolerance:
+        if moves_hint(r):
+            continue
+        g = relabel_gain(xyz, model, r)
+        if g >= -tolerance and (accept is None or accept(xyz, r, g)):
             xyz = apply_relabel(xyz, [r])
             keep.append(r)
     if len(keep) > n0:
-        more = shape_relabels(xyz, t0, pieces=apply_relabel(pieces, keep), fixed=fixed, model=model)
-        keep += [r for r in more if not moves_hint(r)]
+        more = shape_relabels(xyz, t0, pieces=apply_relabel(pieces, keep), fixed=fixed, model=model, accept=accept)
+        more = [r for r in more if not moves_hint(r)]
+        xyz = apply_relabel(xyz, more)
+        keep += more
+    # where there were confusions, look for short ones (1-3 frames, during fast motion) too:
+    # frame-exact runs, every frame, the same gain test, two rounds
+    short = shape_relabels(xyz, t0, fixed=fixed, model=model, accept=accept, stride=1, min_run=1, iterations=2)
+    keep += [r for r in short if not moves_hint(r)]
     return relabel_points(labels, keep), len(keep)
 
 

@@ -30,7 +30,7 @@ frame:
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -314,7 +314,8 @@ def shape_relabels(xyz: np.ndarray, reference_frame: int, *, pieces: np.ndarray 
                    near: int = 3, min_run: int = 4, min_gain: float = 3.0, support: float = 0.6,
                    stride: int = 2, to_missing: bool = False,
                    fixed: Sequence[int] = (), iterations: int = 3,
-                   model: ShapeModel | None = None) -> list[Relabel]:
+                   model: ShapeModel | None = None,
+                   accept: Callable[[np.ndarray, Relabel, float], bool] | None = None) -> list[Relabel]:
     """Label permutations that make the take consistent with its shape near a trusted frame.
 
     Parameters
@@ -358,6 +359,10 @@ def shape_relabels(xyz: np.ndarray, reference_frame: int, *, pieces: np.ndarray 
         Rounds of proposals (a repair can reveal another).
     model : ShapeModel, optional
         A precomputed model (else from the frames around ``reference_frame``).
+    accept : callable, optional
+        ``accept(xyz, relabel, gain)``: a further condition on a repair that passed the gain
+        test (``xyz`` the trajectories before it, ``gain`` its shape gain per frame and marker
+        moved), e.g. that it does not break a rigid group.
 
     Returns
     -------
@@ -413,6 +418,8 @@ def shape_relabels(xyz: np.ndarray, reference_frame: int, *, pieces: np.ndarray 
                 g, sup = _gain(x, model, c, tau)  # again: an earlier repair changed its frames
                 g_n = g / n
             if g_n < min_gain or sup < support:
+                continue
+            if accept is not None and not accept(x, c, g_n):
                 continue
             x = apply_relabel(x, [c])
             if pc is not None:

@@ -125,3 +125,17 @@ def test_well_labelled_real_file_unchanged():
     assert label_accuracy(r.labels, truth)["accuracy"] == 1.0
     assert r.report["shape_repairs"] == 0
     assert detect_swaps(x).relabels == []
+
+
+def test_frame_level_runs_repair_a_two_frame_confusion():
+    # a confusion of two frames (fast motion) is too short for the default runs; the
+    # labeller's last pass (every frame, runs of one frame, the same gain test) repairs it
+    m = body_motion(400, 120.0, seed=3)
+    truth = m.xyz.copy()
+    a, b = _nearest_pair(truth, 200)
+    x = truth.copy()
+    x[200:202, [a, b]] = x[200:202, [b, a]]
+    assert shape_relabels(x, 0) == []
+    rel = shape_relabels(x, 0, stride=1, min_run=1, iterations=2)
+    assert {frozenset(p) for r in rel for p in r.pairs} == {frozenset((a, b))}
+    assert np.array_equal(apply_relabel(x, rel), truth, equal_nan=True)
