@@ -15,8 +15,8 @@ every image; each fitted candidate is labelled **positive** when its centre is w
 cut), **negative** otherwise (texture, eyes, hair, edges, fits more than ``POS_RADIUS`` off,
 fits on merged or partly hidden dots). The classifier (a network with one hidden layer of
 ``HIDDEN`` tanh units and a logistic output, :func:`carapost.core.blob_score.network_probability`)
-is fitted by minimising the log-loss plus a small weight penalty with L-BFGS from a fixed
-random start; the dense model (the preview's per-pixel logistic model on ``log_snr``) by
+is fitted by minimising the log-loss plus a small weight penalty with L-BFGS, ``MEMBERS``
+times from different fixed random starts (the classifier averages their logits); the dense model (the preview's per-pixel logistic model on ``log_snr``) by
 iteratively reweighted least squares over every candidate (positive: within
 ``max(1.5, r/2)`` of a visible dot).
 
@@ -52,6 +52,9 @@ from carapost.core.blobs import analyse_blobs  # noqa: E402
 POS_RADIUS = 1.0
 HIDDEN = 16
 PENALTY = 1e-4
+#: Networks fitted from different random starts (seeds ``seed .. seed + MEMBERS - 1``); the
+#: classifier averages their logits (an ensemble: less variance than any one of them).
+MEMBERS = 3
 MIN_RADIUS, MAX_RADIUS = 1.5, 14.0
 
 
@@ -246,6 +249,8 @@ def main() -> None:
     ap.add_argument("--dry", action="store_true", help="only report, do not write the classifier")
     ap.add_argument("--hidden", type=int, default=HIDDEN, help="hidden units")
     ap.add_argument("--penalty", type=float, default=PENALTY, help="weight penalty")
+    ap.add_argument("--members", type=int, default=MEMBERS,
+                    help="networks fitted from different random starts, averaged (logits)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     if args.reuse and args.cache and args.cache.exists():
@@ -261,7 +266,10 @@ def main() -> None:
     for d in (tr, va):
         m = {k[2:]: v for k, v in d.items() if k.startswith("m_")}
         d["X"] = blob_score.features(m["snr"], m)
-    model = fit_network(tr["X"], tr["y"].astype(float), args.hidden, args.penalty, seed=args.seed)
+    nets = [fit_network(tr["X"], tr["y"].astype(float), args.hidden, args.penalty, seed=args.seed + k)
+            for k in range(args.members)]
+    model = nets[0] if len(nets) == 1 else {k: (nets[0][k] if k in ("mean", "std") else np.stack([m[k] for m in nets]))
+                                            for k in nets[0]}
     Dd = np.stack([np.ones_like(tr["Xd"]), tr["Xd"]], 1)
     model["dense_coef"] = fit_logistic(Dd, tr["yd"].astype(float))
     pv = blob_score.network_probability(va["X"], model)
@@ -272,6 +280,7 @@ def main() -> None:
         current = None
     report = {
         "features": list(blob_score.FEATURES), "hidden": args.hidden, "penalty": args.penalty,
+        "members": args.members,
         "dense_coef": [round(float(c), 4) for c in model["dense_coef"]],
         "train": {"n": int(len(tr["y"])), "positives": int(tr["y"].sum())},
         "validation": {"n": int(len(va["y"])), "positives": int(va["y"].sum()), "log_loss": log_loss(pv, va["y"]),

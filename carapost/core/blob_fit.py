@@ -97,6 +97,9 @@ class PatchFit:
         Standard deviation of the ring background residual (grey levels).
     core_level : float64 (N,)
         The level (fraction of the peak over the ring) of the core (:data:`LEVELS`).
+    found_level : float64 (N,)
+        The core level the search found (``core_level`` is higher for an alternative outline,
+        ``min_core``).
     area_ratio : float64 (N,)
         Area of the core's component at the next level up over the core's area.
     shape_residual, asymmetry, profile_rms : float64 (N,)
@@ -129,6 +132,7 @@ class PatchFit:
     noise: np.ndarray
     ring_noise: np.ndarray
     core_level: np.ndarray
+    found_level: np.ndarray
     area_ratio: np.ndarray
     shape_residual: np.ndarray
     asymmetry: np.ndarray
@@ -419,7 +423,8 @@ def _sector_background(d: np.ndarray, band: np.ndarray, need: np.ndarray, cx: np
 
 
 def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndarray, half: int, *,
-                polarity: int, max_radius: float, pixel_noise: float, bad: np.ndarray | None, saturated: tuple[int, int] | None) -> PatchFit:
+                polarity: int, max_radius: float, pixel_noise: float, bad: np.ndarray | None, saturated: tuple[int, int] | None,
+                min_core: float = 0.0) -> PatchFit:
     """Fit blobs around candidate pixels of one pyramid level image.
 
     Parameters
@@ -445,6 +450,10 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
         image (give it for white blobs). They are left out of the background and may only be
         inside the blob itself (an over-exposed white dot); a blob next to a saturated region
         is rejected. Black blobs do not need it: a black dot on a clipped white card is fine.
+    min_core : float
+        Lowest level (fraction of the peak, one of :data:`LEVELS`) allowed for the core: an
+        alternative, tighter outline for a dot that merges with a dark band at the level the
+        search picks (the detector fits both and keeps the more probable).
 
     Returns
     -------
@@ -528,6 +537,9 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
     run = np.cumprod(valid[:, ::-1], axis=1)[:, ::-1].astype(bool)         # valid and all above
     has = run[:, -1]
     kc = np.where(has, np.argmax(run, axis=1), K - 1)
+    k_found = kc
+    if min_core > 0:
+        kc = np.maximum(kc, min(int(np.searchsorted(np.asarray(LEVELS), min_core - 1e-9)), K - 1))
     core = L >= thr[kc][:, None, None]
     core_area = area[idx, kc]
     above = np.minimum(kc + 1, K - 1)
@@ -612,6 +624,7 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
                       ("angle", angle), ("contrast", C), ("background", bg_band),
                       ("rise", (bg_band - bg_ring) / np.maximum(C, 1e-6)), ("noise", sigma),
                       ("ring_noise", sig0[alive]), ("core_level", np.asarray(LEVELS)[kc]),
+                      ("found_level", np.asarray(LEVELS)[k_found]),
                       ("area_ratio", area_ratio), ("shape_residual", shape), ("asymmetry", asym),
                       ("profile_rms", prms), ("area", m0), ("ok", ok), ("border", border),
                       ("open", 1.0 - b_sec.max(axis=1)), ("kept", m0 / m0_full), ("saturated", sat_near)):

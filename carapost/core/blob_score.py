@@ -64,12 +64,22 @@ Features of the classifier (:data:`FEATURES`):
     +1 white, -1 black.
 ``background``
     the local background grey level over 255.
+``ctx_max``, ``ctx_mean``, ``ctx_line``
+    context at about twice the blob's size: the signal over the contrast on a ring at twice
+    the fitted ellipse + 1.5 px — its largest value (an eye or nostril beside an eye corner),
+    its mean, and the larger of two opposite points' minimum (a line or band through it).
+``ctx_inner``
+    the mean of the same on a ring at 1.3x the ellipse + 1.5 px (a pupil inside its iris).
+``forced``
+    how far an alternative outline's core level was forced above the level its search
+    found (0 for the first outline; see :data:`carapost.core.blobs.ALT_CORE_LEVELS`).
 
 Squares of ``log_cnr_pix`` and ``log_weber`` and a few products are kept from the earlier
 logistic model. Every feature is clipped to a physical range, so nothing extrapolates.
 
 **The classifier** is a small neural network: the standardised features feed one hidden layer
-of ``tanh`` units whose weighted sum is passed through the logistic function. Trained with the
+of ``tanh`` units whose weighted sum is passed through the logistic function; three such
+networks fitted from different random starts are averaged (their mean logit). Trained with the
 log-loss (the negative log-likelihood of the labels), its output is a probability; its
 calibration is checked on held-out images (``docs/blobs.md``). The weights live in
 ``carapost/resources/blob_classifier.json``, written by ``benchmarks/fit_blob_score.py``,
@@ -93,7 +103,8 @@ FEATURES: tuple[str, ...] = ("bias", "log_snr", "log_cnr_pix", "log_cnr", "log_w
                              "log_weber^2", "asymmetry*log_cnr_pix", "log_profile_chi2*log_cnr_pix",
                              "shape*log_cnr_pix", "open", "kept", "area_ratio", "open^2", "open*log_weber",
                              "paint", "paint^2", "saturated", "log_major", "log_cnr_ring", "log_ring_weber",
-                             "level", "polarity", "background")
+                             "level", "polarity", "background", "ctx_max", "ctx_mean", "ctx_line", "ctx_inner",
+                             "forced")
 
 _SNR_CAP = 100.0
 #: Smallest background grey level used for the Weber contrast (below it the skin is in deep
@@ -120,7 +131,10 @@ def features(snr: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
         residual std), ``pixel_noise`` (grey levels), ``polarity`` (+1 white / -1 black),
         ``rise``, ``core_level``, ``shape``, ``asymmetry``, ``profile_rms``, ``open``, ``kept``,
         ``area_ratio``, ``paint``, ``saturated``, ``major``, ``minor`` (px), ``ring_noise``
-        (ring background residual std), ``ring_weber``, ``level``.
+        (ring background residual std), ``ring_weber``, ``level``, ``ctx_max``, ``ctx_mean``,
+        ``ctx_line``, ``ctx_inner`` (context rings, see :func:`carapost.core.blobs._context_ring`),
+        ``found_level`` (core level found by the search; ``forced`` = ``core_level`` minus it,
+        > 0 for an alternative outline).
     """
     def log(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
         return np.log(np.clip(np.asarray(x, float), lo, hi))
@@ -159,6 +173,9 @@ def features(snr: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
         np.ones_like(snr), ls, lp, lc, lw, rise, core, shape, asym, chi, aspect,
         lp * lp, lw * lw, asym * lp, chi * lp, shape * lp, op, kept, ar, op * op, op * lw,
         paint, paint * paint, sat, lmaj, lring, lrw, level, pol, bgl,
+        np.clip(np.asarray(m["ctx_max"], float), -1.0, 2.0), np.clip(np.asarray(m["ctx_mean"], float), -1.0, 2.0),
+        np.clip(np.asarray(m["ctx_line"], float), -1.0, 2.0), np.clip(np.asarray(m["ctx_inner"], float), -1.0, 2.0),
+        np.clip(np.asarray(m["core_level"], float) - np.asarray(m["found_level"], float), 0.0, 1.0),
     ], axis=1)
 
 
@@ -167,15 +184,24 @@ def _logistic(z: np.ndarray) -> np.ndarray:
 
 
 def network_probability(feat: np.ndarray, model: dict) -> np.ndarray:
-    """Output ``(N,)`` of the one-hidden-layer network ``model`` on features ``(N, F)``.
+    """Output ``(N,)`` of the one-hidden-layer network (or ensemble of networks) ``model`` on
+    features ``(N, F)``.
 
     ``model`` holds ``mean``, ``std`` (F-1,) for the standardisation of every feature but the
     bias, ``W1`` (F-1, H), ``b1`` (H,), ``w2`` (H,), ``b2`` (scalar):
-    ``p = logistic(tanh(((x - mean) / std) W1 + b1) w2 + b2)``.
+    ``p = logistic(tanh(((x - mean) / std) W1 + b1) w2 + b2)``. An ensemble of ``M`` networks
+    fitted from different random starts stacks them: ``W1`` (M, F-1, H), ``b1``, ``w2`` (M, H),
+    ``b2`` (M,); its output is the logistic of the members' mean logit.
     """
     x = (np.asarray(feat, float)[:, 1:] - model["mean"]) / model["std"]
-    h = np.tanh(x @ model["W1"] + model["b1"])
-    return _logistic(np.clip(h @ model["w2"] + model["b2"], -60.0, 60.0))
+    W1 = np.asarray(model["W1"], float)
+    if W1.ndim == 2:
+        h = np.tanh(x @ W1 + model["b1"])
+        z = h @ model["w2"] + model["b2"]
+    else:
+        h = np.tanh(np.einsum("nf,mfh->mnh", x, W1) + np.asarray(model["b1"])[:, None, :])
+        z = (np.einsum("mnh,mh->mn", h, np.asarray(model["w2"])) + np.asarray(model["b2"])[:, None]).mean(axis=0)
+    return _logistic(np.clip(z, -60.0, 60.0))
 
 
 def save_model(path: Path, model: dict, info: dict | None = None) -> None:

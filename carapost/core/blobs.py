@@ -9,6 +9,8 @@ ellipse):
 2. Candidates that climb to the same peak (one blob seen at several scales) are fitted once.
    Each fit (:mod:`carapost.core.blob_fit`) searches the levels of its peak for the blob's
    core, models its local background, and measures the ellipse, sub-pixel centre and shape.
+   Candidates whose core was found low (a dot merging with an eyebrow or a lip line) are
+   fitted again with tighter outlines (:data:`ALT_CORE_LEVELS`); the more probable is kept.
 3. A small neural-network classifier (:mod:`carapost.core.blob_score`), calibrated on rendered dots and
    synthetic faces with exact ground truth, turns the fit's features into the probability
    that it is a (well-located) blob centre; the Blob Parameters threshold is applied to it.
@@ -58,6 +60,16 @@ _MERGE_PLATEAUS = True
 #: A fitted blob with at least this probability hides smaller, weaker-contrast detections
 #: inside its ellipse (rim maxima and interior texture of big blobs).
 _CONTAINER_SCORE = 0.3
+#: Core levels of the alternative outlines fitted for candidates whose core was found lower
+#: (see :func:`analyse_blobs`).
+ALT_CORE_LEVELS: tuple[float, ...] = (0.75, 0.9)
+#: ... only for candidates whose first outline has a lower probability than this.
+_ALT_BELOW = 0.9
+#: ... and only for strong candidates (dense SNR and ring-test Weber contrast): the dots these
+#: outlines recover all stand far above both (SNR > 50, Weber > 0.3 on the benchmark's
+#: synthetic takes), texture and shading candidates do not, and are not refitted.
+_ALT_MIN_SNR = 30.0
+_ALT_MIN_WEBER = 0.2
 
 
 @dataclass
@@ -162,7 +174,7 @@ def _saturation(level: int) -> tuple[int, int]:
 
 
 _MEASURES = ("x", "y", "major", "minor", "angle", "contrast", "background", "rise", "noise", "ring_noise",
-             "core_level", "area_ratio", "shape", "asymmetry", "profile_rms", "area", "pixel_noise", "level",
+             "core_level", "found_level", "area_ratio", "shape", "asymmetry", "profile_rms", "area", "pixel_noise", "level",
              "border", "open", "kept", "saturated")
 
 
@@ -270,12 +282,30 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
             gx = np.rint(out["x"][again] / s).astype(np.int64)
             gy = np.rint(out["y"][again] / s).astype(np.int64)
             _fit(ctx, again, gx, gy, k, np.maximum(out["major"][again], 1.0), out, ok)
-    # The dot's extreme grey level over a bright reference level of the image: paint has a
-    # fixed reflectance (black ink is among the darkest things in view, white paint among the
-    # brightest), whatever the exposure.
-    top = out["background"] + polarity * out["contrast"]
-    out["paint"] = top / _reference_level(image) if polarity > 0 else 1.0 - top / _reference_level(image)
-    score, ok, feat = _score(cand, out, ok, min_radius, max_radius, image.shape, polarity)
+            px[again], py[again], level[again] = gx, gy, k
+            radius[again] = np.maximum(out["major"][again], 1.0)
+    ref_level = _reference_level(image)
+    ctx_img = cv2.blur(signed, (3, 3))
+    score, ok_s, feat = _score(cand, out, ok, min_radius, max_radius, ctx_img, polarity, ref_level)
+    if n and ALT_CORE_LEVELS:
+        # Alternative, tighter outlines for dots whose core was taken at a low level (a dot
+        # on an eyebrow, a lip line, next to the mouth): the classifier picks the more
+        # probable outline of each candidate.
+        for lv_alt in ALT_CORE_LEVELS:
+            alt = np.flatnonzero((out["core_level"] < lv_alt - 1e-9) & (score < _ALT_BELOW)
+                                 & (cand.snr >= _ALT_MIN_SNR) & (weber >= _ALT_MIN_WEBER))
+            if len(alt) == 0:
+                continue
+            out2 = {k: v.copy() for k, v in out.items()}
+            ok2 = ok.copy()
+            _fit(ctx, alt, px[alt], py[alt], level[alt], radius[alt], out2, ok2, min_core=lv_alt)
+            score2, ok2_s, feat2 = _score(cand, out2, ok2, min_radius, max_radius, ctx_img, polarity,
+                                          ref_level)
+            better = alt[ok2_s[alt] & (score2[alt] > score[alt])]
+            for k in out:
+                out[k][better] = out2[k][better]
+            ok[better], ok_s[better], score[better], feat[better] = ok2[better], True, score2[better], feat2[better]
+    ok = ok_s
     ok &= _unique(out, score, ok)
     cx, cy = cand.full_xy()
     return BlobAnalysis(x=out["x"], y=out["y"], major=out["major"], minor=out["minor"],
@@ -394,7 +424,7 @@ def _representatives(ctx: _Context, cand: Candidates, c75: np.ndarray
 
 
 def _fit(ctx: _Context, sel: np.ndarray, px: np.ndarray, py: np.ndarray, level: np.ndarray,
-         radius: np.ndarray, out: dict[str, np.ndarray], ok: np.ndarray) -> np.ndarray:
+         radius: np.ndarray, out: dict[str, np.ndarray], ok: np.ndarray, min_core: float = 0.0) -> np.ndarray:
     """Fit blobs ``sel`` centred on pixels ``px, py`` of pyramid ``level`` with full-resolution
     radius estimates ``radius``, in groups of equal level and patch size, writing into
     ``out``/``ok``. Returns ``border (len(sel),)``."""
@@ -408,7 +438,8 @@ def _fit(ctx: _Context, sel: np.ndarray, px: np.ndarray, py: np.ndarray, level: 
         k, h = int(gk // 10000), int(gk % 10000)
         fit = fit_patches(ctx.pyr[k], px[loc], py[loc], r_lv[loc], h, polarity=ctx.polarity,
                           pixel_noise=ctx.level_noise(k), max_radius=ctx.max_radius / 2.0 ** k,
-                          bad=ctx.level_mask(k), saturated=_saturation(k) if ctx.polarity > 0 else None)
+                          bad=ctx.level_mask(k), saturated=_saturation(k) if ctx.polarity > 0 else None,
+                          min_core=min_core)
         s = 2.0 ** k
         out["x"][idx] = fit.x * s
         out["y"][idx] = fit.y * s
@@ -418,7 +449,7 @@ def _fit(ctx: _Context, sel: np.ndarray, px: np.ndarray, py: np.ndarray, level: 
         out["contrast"][idx] = fit.contrast
         # Background level in the original image's grey levels (the level image is signed).
         out["background"][idx] = fit.background if ctx.polarity > 0 else 255.0 - fit.background
-        for name in ("rise", "noise", "ring_noise", "core_level", "area_ratio", "asymmetry", "profile_rms",
+        for name in ("rise", "noise", "ring_noise", "core_level", "found_level", "area_ratio", "asymmetry", "profile_rms",
                      "open", "kept", "saturated"):
             out[name][idx] = getattr(fit, name)
         out["shape"][idx] = fit.shape_residual
@@ -432,17 +463,74 @@ def _fit(ctx: _Context, sel: np.ndarray, px: np.ndarray, py: np.ndarray, level: 
 
 
 def _score(cand, out: dict[str, np.ndarray], ok: np.ndarray, min_radius: float, max_radius: float,
-           shape: tuple[int, int], polarity: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+           ctx_img: np.ndarray, polarity: int, ref_level: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Radius and image-bounds checks, features and probabilities of fitted candidates.
+
+    ``ctx_img`` is the 3x3 mean of the signed full-resolution image (blobs bright), from
+    which the context ring is sampled (:func:`_context_ring`).
+
+    Sets ``out["paint"]``: the dot's extreme grey level over ``ref_level``, a bright reference
+    level of the image (paint has a fixed reflectance: black ink is among the darkest things
+    in view, white paint among the brightest, whatever the exposure).
 
     Returns ``score (N,)`` (0 where not ok), ``ok (N,)`` and the features ``(N, F)``.
     """
-    H, W = shape
+    top = out["background"] + polarity * out["contrast"]
+    out["paint"] = top / ref_level if polarity > 0 else 1.0 - top / ref_level
+    _context_ring(ctx_img, out, polarity)
+    H, W = ctx_img.shape
     ok = ok & (out["major"] >= min_radius) & (out["major"] <= max_radius)
     ok &= (out["x"] >= -0.5) & (out["x"] <= W - 0.5) & (out["y"] >= -0.5) & (out["y"] <= H - 0.5)
     feat = blob_score.features(cand.snr, {**out, "polarity": np.full(len(cand), polarity)})
     score = np.where(ok, blob_score.probability(feat), 0.0)
     return score, ok, feat
+
+
+#: Samples on the context ring, and its size: the fitted ellipse scaled by 2 and grown by
+#: 1.5 px (beyond the local background band: the wider structure the blob sits in).
+_CTX_SAMPLES = 16
+_CTX_SCALE, _CTX_GROW = 2.0, 1.5
+#: Scale of the inner context ring (just outside the blob's edge: a pupil's iris).
+_CTX_INNER_SCALE = 1.3
+
+
+def _context_ring(ctx_img: np.ndarray, out: dict[str, np.ndarray], polarity: int) -> None:
+    """Context of each fitted blob at about twice its size, in units of its contrast.
+
+    Samples the signed, 3x3-smoothed image ``ctx_img`` (blobs bright) at :data:`_CTX_SAMPLES`
+    points of the fitted ellipse scaled by ``_CTX_SCALE`` and grown by ``_CTX_GROW`` px,
+    relative to the local background, over the contrast. Sets ``out["ctx_max"]`` (the
+    darkest direction: an eye or a nostril beside an eye corner), ``out["ctx_mean"]`` (a
+    pupil inside its iris) and ``out["ctx_line"]`` (the larger of the two opposite samples'
+    minimum: a line or band through the blob, as at a lip corner or on an eyebrow), and
+    ``out["ctx_inner"]``, the mean on a second ring at ``_CTX_INNER_SCALE`` (a pupil's iris),
+    ``(N,)``.
+    """
+    n = len(out["x"])
+    if n == 0:
+        for k in ("ctx_max", "ctx_mean", "ctx_line", "ctx_inner"):
+            out[k] = np.zeros(0)
+        return
+    H, W = ctx_img.shape
+    t = np.arange(_CTX_SAMPLES) * (2.0 * np.pi / _CTX_SAMPLES)
+    maj = np.nan_to_num(out["major"])[:, None]
+    mnr = np.nan_to_num(out["minor"])[:, None]
+    u = np.concatenate([(_CTX_SCALE * maj + _CTX_GROW) * np.cos(t)[None],
+                        (_CTX_INNER_SCALE * maj + _CTX_GROW) * np.cos(t)[None]], axis=1)
+    v = np.concatenate([(_CTX_SCALE * mnr + _CTX_GROW) * np.sin(t)[None],
+                        (_CTX_INNER_SCALE * mnr + _CTX_GROW) * np.sin(t)[None]], axis=1)
+    ca, sa = np.cos(out["angle"])[:, None], np.sin(out["angle"])[:, None]
+    sx = np.clip(np.nan_to_num(out["x"])[:, None] + u * ca - v * sa, 0, W - 1).astype(np.float32)
+    sy = np.clip(np.nan_to_num(out["y"])[:, None] + u * sa + v * ca, 0, H - 1).astype(np.float32)
+    vals = cv2.remap(ctx_img, sx.reshape(1, -1), sy.reshape(1, -1), cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE).reshape(n, 2 * _CTX_SAMPLES).astype(np.float64)
+    bg = out["background"] if polarity > 0 else 255.0 - out["background"]
+    sig = (vals - bg[:, None]) / np.maximum(out["contrast"], 1.0)[:, None]
+    half = _CTX_SAMPLES // 2
+    out["ctx_max"] = sig[:, :_CTX_SAMPLES].max(axis=1)
+    out["ctx_mean"] = sig[:, :_CTX_SAMPLES].mean(axis=1)
+    out["ctx_line"] = np.minimum(sig[:, :half], sig[:, half:_CTX_SAMPLES]).max(axis=1)
+    out["ctx_inner"] = sig[:, _CTX_SAMPLES:].mean(axis=1)
 
 
 def _in_ellipse(px: np.ndarray, py: np.ndarray, out: dict[str, np.ndarray], j: np.ndarray,
