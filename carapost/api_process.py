@@ -258,7 +258,7 @@ class CaraProcess(ProcessingSteps):
             raise ValueError(f"sensor(s) {gone} have no video file: relocate them before detecting blobs")
         frames = list(range(a, b + 1))
         change = _ops("detect").detect_blobs(self.take, self._session.image, frames, cameras=cams, workers=workers,
-                                         progress=progress, cancel=cancel)
+                                             progress=progress, cancel=cancel, sources=self._session.sources)
         self._apply(change)
         return all(bool(self.take.detections[c].detected[a:b + 1].all()) for c in cams)
 

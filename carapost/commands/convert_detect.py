@@ -59,7 +59,8 @@ def _detect(session: Any, args: argparse.Namespace) -> dict[str, Any]:
     cams = parse_cameras(args.cameras, take.n_cameras)
     t0 = time.perf_counter()
     with progress_bar("detect blobs") as prog:
-        session.apply(detect_blobs(take, session.image, frames, cameras=cams, workers=args.workers, progress=prog))
+        session.apply(detect_blobs(take, session.image, frames, cameras=cams, workers=args.workers, progress=prog,
+                                       sources=session.sources))
     dt = time.perf_counter() - t0
     n = sum(len(d) for d in take.detections)
     used = cams if cams is not None else list(range(take.n_cameras))
@@ -94,7 +95,7 @@ def add_parsers(sub: argparse._SubParsersAction) -> dict[str, Any]:
     p.add_argument("--save", type=Path, help="save the take with its detections as this .cara")
     p.add_argument("--frames", help="frame range a:b (inclusive); default all")
     p.add_argument("--cameras", help="comma-separated channels; default all")
-    p.add_argument("--workers", type=int, default=2, help="threads (default 2)")
+    p.add_argument("--workers", type=int, default=2, help="worker processes (threads for short ranges; default 2)")
     p.add_argument("--white", action=argparse.BooleanOptionalAction, default=None, help="find white blobs")
     p.add_argument("--black", action=argparse.BooleanOptionalAction, default=None, help="find black blobs")
     for colour in ("black", "white"):

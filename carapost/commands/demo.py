@@ -68,7 +68,8 @@ def _run(session: Any, synth: Any, files: dict, rep: _Report, out: Path, total0:
 
     t0 = time.perf_counter()
     with progress_bar("detect blobs") as prog:
-        session.apply(detect_blobs(take, session.image, range(take.n_frames), progress=prog))
+        session.apply(detect_blobs(take, session.image, range(take.n_frames), progress=prog,
+                                   sources=session.sources))
     sc = score_detections(take.detections, synth.truth, range(take.n_frames))
     rep.stage("detect blobs [active range]", time.perf_counter() - t0, recall=sc.recall, precision=sc.precision,
               median_err_px=sc.median_error_px)

@@ -35,7 +35,8 @@ def cmd_process(args: argparse.Namespace) -> dict[str, Any]:
     with session:
         for m in session.messages:
             print(f"  warning: {m}")
-        opts = PipelineOptions(frame=args.frame, detect=args.detect, brim=args.brim, seeds=args.seeds,
+        detect = args.detect or ("range" if args.track else "frame")
+        opts = PipelineOptions(frame=args.frame, detect=detect, brim=args.brim, seeds=args.seeds,
                                auto_init=args.auto_init, rom=args.rom, track=args.track,
                                fill=args.fill_method if args.fill else None, stabilize=args.stabilize,
                                c3d=args.c3d, fbx=args.fbx)
@@ -73,8 +74,10 @@ def add_parsers(sub: Any) -> dict[str, Any]:
     init.add_argument("--auto-init", action="store_true", help="initialize without seeds")
     init.add_argument("--rom", type=Path, help="solved ROM .cara of the same actor and marker set: Initialize from ROM")
     p.add_argument("--frame", type=int, help="frame to initialize (default: the seeds' frame, else 0)")
-    p.add_argument("--detect", choices=("frame", "range", "none"), default="frame",
-                   help="detect blobs in the initialization frame (default) or the whole active range")
+    p.add_argument("--detect", choices=("frame", "range", "none"),
+                   help="detect blobs in the initialization frame only (the default without --track; the tracker "
+                        "detects the rest as it goes) or in the whole active range first, on all cores (the "
+                        "default with --track)")
     p.add_argument("--track", action="store_true",
                    help="track forwards from the initialized frame to the end, then backwards to the start")
     p.add_argument("--fill", action="store_true", help="Interpolate Gaps after tracking")

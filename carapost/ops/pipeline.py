@@ -133,7 +133,8 @@ def run_pipeline(session: Session, options: PipelineOptions, *, report: Report |
     if options.detect != "none" and todo:
         t0 = time.perf_counter()
         with stage("detect blobs"), progress("detect blobs") as prog:
-            session.apply(detect_blobs(take, session.image, todo, progress=prog, cancel=cancel))
+            session.apply(detect_blobs(take, session.image, todo, progress=prog, cancel=cancel,
+                                       sources=session.sources))
         done("detect blobs", t0, frames=len(todo), detections=int(sum(len(d) for d in take.detections)))
 
     # 2. Calibration brim.

@@ -223,7 +223,8 @@ def detections_change(take: Take, tables: Mapping[int, Mapping[int, Table]]) -> 
 def detect_blobs_split(take: Take, frames: Sequence[int], *, sources: Sequence[Any] | None = None,
                        workers: int = 2, pool: Pool | None = None, cameras: Sequence[int] | None = None,
                        params: BlobParameters | None = None, masks: Sequence[np.ndarray | None] | None = None,
-                       progress: ProgressFn | None = None, cancel: CancelFn | None = None) -> Composite:
+                       progress: ProgressFn | None = None, cancel: CancelFn | None = None,
+                       chunk_frames: int | None = None) -> Composite:
     """"Detect Blobs" with the frames split across worker processes.
 
     Parameters
@@ -239,6 +240,9 @@ def detect_blobs_split(take: Take, frames: Sequence[int], *, sources: Sequence[A
         An open pool to use (e.g. a :class:`~carapost.ops.batch_pool.DaskPool`); not closed.
     cameras, params, masks, progress, cancel
         As for :func:`carapost.ops.detect.detect_blobs`.
+    chunk_frames : int, optional
+        About how many frames a chunk holds (progress and cancel act between chunks); default
+        two chunks per worker.
 
     Returns
     -------
@@ -258,7 +262,8 @@ def detect_blobs_split(take: Take, frames: Sequence[int], *, sources: Sequence[A
     own = pool is None
     p = open_pool(workers) if pool is None else pool
     try:
-        tables = detect_split(task, fs, p, progress=progress, cancel=cancel)
+        per_worker = 2 if chunk_frames is None else max(2, -(-len(fs) // (max(1, p.workers) * chunk_frames)))
+        tables = detect_split(task, fs, p, chunks_per_worker=per_worker, progress=progress, cancel=cancel)
     finally:
         if own:
             p.close()

@@ -133,7 +133,7 @@ def _blob_track(fn: str) -> Callable[[OpContext], Change]:
 def _detect(frames: Callable[[OpContext], Sequence[int]]) -> Callable[[OpContext], Change]:
     def op(c: OpContext) -> Change:
         return detect_ops.detect_blobs(c.take, c.image, frames(c), cameras=c.cameras, progress=c.progress,
-                                       cancel=c.cancel)
+                                       cancel=c.cancel, sources=c.session.sources)
     return op
 
 
