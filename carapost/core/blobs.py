@@ -494,6 +494,22 @@ _CTX_SCALE, _CTX_GROW = 2.0, 1.5
 _CTX_INNER_SCALE = 1.3
 
 
+_SAMPLE_ROW = 1024  # cv2.remap refuses maps of 32767 or more rows or columns: samples go in rows of this length
+
+
+def _sample(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``img`` at float32 pixel positions ``x, y`` ``(N,)`` -> float64 ``(N,)``."""
+    n = len(x)
+    pad = -n % _SAMPLE_ROW
+    mx = np.concatenate([x, np.zeros(pad, np.float32)]).reshape(-1, _SAMPLE_ROW)
+    my = np.concatenate([y, np.zeros(pad, np.float32)]).reshape(-1, _SAMPLE_ROW)
+    out = np.empty(mx.shape, img.dtype)
+    for r in range(0, len(mx), 16384):                      # rows too stay below remap's limit
+        out[r:r + 16384] = cv2.remap(img, mx[r:r + 16384], my[r:r + 16384], cv2.INTER_LINEAR,
+                                     borderMode=cv2.BORDER_REPLICATE)
+    return out.ravel()[:n].astype(np.float64)
+
+
 def _context_ring(ctx_img: np.ndarray, out: dict[str, np.ndarray], polarity: int) -> None:
     """Context of each fitted blob at about twice its size, in units of its contrast.
 
@@ -522,8 +538,7 @@ def _context_ring(ctx_img: np.ndarray, out: dict[str, np.ndarray], polarity: int
     ca, sa = np.cos(out["angle"])[:, None], np.sin(out["angle"])[:, None]
     sx = np.clip(np.nan_to_num(out["x"])[:, None] + u * ca - v * sa, 0, W - 1).astype(np.float32)
     sy = np.clip(np.nan_to_num(out["y"])[:, None] + u * sa + v * ca, 0, H - 1).astype(np.float32)
-    vals = cv2.remap(ctx_img, sx.reshape(1, -1), sy.reshape(1, -1), cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE).reshape(n, 2 * _CTX_SAMPLES).astype(np.float64)
+    vals = _sample(ctx_img, sx.ravel(), sy.ravel()).reshape(n, 2 * _CTX_SAMPLES)
     bg = out["background"] if polarity > 0 else 255.0 - out["background"]
     sig = (vals - bg[:, None]) / np.maximum(out["contrast"], 1.0)[:, None]
     half = _CTX_SAMPLES // 2
