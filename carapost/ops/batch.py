@@ -23,7 +23,6 @@ import contextlib
 import json
 import logging
 import os
-import tempfile
 import time
 import traceback
 from collections.abc import Callable, Iterator, Sequence
@@ -73,18 +72,9 @@ def read_manifest(output: str | os.PathLike) -> dict[str, Any] | None:
 
 
 def _write_json(path: Path, doc: dict[str, Any]) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(doc, fh, indent=1, default=str)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    from carapost.io.atomic import atomic_write_text
+
+    atomic_write_text(path, json.dumps(doc, indent=1, default=str) + "\n")
 
 
 def _watched(job: TakeJob, options: BatchOptions) -> list[str]:

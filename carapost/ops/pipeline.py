@@ -241,10 +241,6 @@ def _cancelled(cancel: Callable[[], bool] | None) -> bool:
     return cancel is not None and bool(cancel())
 
 
-def _face_point_frames(take: Any) -> int:
-    return int(np.isfinite(take.xyz[:, take.face_points()]).all(-1).sum())
-
-
 def track_both_ways(session: Session, frame: int, *, progress: Callable[..., Any] = _no_progress,
                     cancel: Callable[[], bool] | None = None) -> dict[str, Any]:
     """Track Forwards [Sequence] then Track Backwards [Sequence] from ``frame`` (two undoable
