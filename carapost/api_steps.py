@@ -395,9 +395,11 @@ class ProcessingSteps:
         return out
 
     # ---------------------------------------------------- gaps, stabilization, alignment
-    def interpolate_gaps(self, points: Sequence[int | str] | None = None, *, method: str = "neighbours") -> dict:
+    def interpolate_gaps(self, points: Sequence[int | str] | None = None, *, method: str | None = None) -> dict:
         """"Interpolate Gaps" of some points (default all) in the active range, with the
-        Gap-Filling Parameters. Returns the report (``filled``, ``single_sensor``, ``unfilled``)."""
+        Gap-Filling Parameters (``method`` default: their *Method*: ``"neighbours"``,
+        ``"face_model"`` or ``"blink"``). Returns the report (``filled``, ``single_sensor``,
+        ``unfilled``)."""
         cols = None if points is None else self._points(points)
         change = _ops("fill").interpolate_gaps(self.take, cols, method=method)
         self._apply(change)

@@ -228,6 +228,10 @@ class GapFillingParameters(ParamSection):
     use_forwards_prediction: bool = p(True, "Use Forwards Prediction")
     use_backwards_prediction: bool = p(True, "Use Backwards Prediction")
     allow_single_sensor_tracking_gap_filling: bool = p(True, "Allow Single Sensor Tracking Gap-Filling")
+    method: str = p("neighbours", "Method", choices=FILL_METHODS,
+                    help="neighbours: the guide's gap interpolation; face_model: a face model learnt from the "
+                         "take (or the loaded ROM); blink: neighbours plus eyelid blink pulses, their depth taken "
+                         "from the loaded ROM when there is one (not in Vicon CaraPost; docs/gap-filling.md).")
 
 
 @dataclass

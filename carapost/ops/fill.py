@@ -190,7 +190,7 @@ def _fill_arrays(take: Take, frames: np.ndarray, fill: np.ndarray, known: np.nda
 
 
 # ----------------------------------------------------------------------------- gap filling
-def interpolate_gaps(take: Take, points: Sequence[int] | None = None, *, method: str = "neighbours",
+def interpolate_gaps(take: Take, points: Sequence[int] | None = None, *, method: str | None = None,
                      params: GapFillingParameters | None = None, face_model: FaceModel | None = None,
                      n_neighbours: int = 8, momentum_s: float = 0.0, rom: Take | None = None,
                      blink_depths: dict[int, float] | None = None) -> ReportedChange:
@@ -200,8 +200,8 @@ def interpolate_gaps(take: Take, points: Sequence[int] | None = None, *, method:
     ----------
     take : Take
     points : point columns, optional
-    method : {"neighbours", "face_model", "blink"}
-        ``"neighbours"``: the guide's neighbour-driven forward/backward prediction
+    method : {"neighbours", "face_model", "blink"}, optional
+        Default: the Gap-Filling Parameters' *Method*. ``"neighbours"``: the guide's neighbour-driven forward/backward prediction
         (:func:`carapost.core.gapfill.fill_gaps`). ``"face_model"``: the learned face model
         (``face_model``, or one learnt from the active range's complete frames), with the
         neighbour method for the samples the model does not cover. ``"blink"``: the neighbour
@@ -221,8 +221,9 @@ def interpolate_gaps(take: Take, points: Sequence[int] | None = None, *, method:
         Time constant (seconds) of the continuation of a point's own motion into the gap
         (0: the guide's algorithm; see ``docs/gap-filling.md``).
     rom : Take, optional
-        For ``method="blink"``: a range-of-motion take of the same actor and markers, from which
-        each marker's blink depth is measured (:func:`blink_depths_for`).
+        A range-of-motion take of the same actor and markers. ``method="blink"``: each marker's
+        blink depth is measured in it (:func:`blink_depths_for`); ``method="face_model"`` (without
+        ``face_model``): the model is learnt from it (:func:`face_model_for`).
     blink_depths : dict {point column: mm}, optional
         For ``method="blink"``: known depths instead (overrides ``rom``). Without either the
         depth is fitted from the take, which determines it only loosely.
@@ -240,6 +241,7 @@ def interpolate_gaps(take: Take, points: Sequence[int] | None = None, *, method:
         Unknown method, bad point indices, or both predictions disabled.
     """
     params = take.params.gapfill if params is None else params
+    method = params.method if method is None else method
     if not (params.use_forwards_prediction or params.use_backwards_prediction):
         raise ValueError("Interpolate Gaps: enable Use Forwards Prediction or Use Backwards Prediction")
     frames = _range(take)
@@ -257,6 +259,8 @@ def interpolate_gaps(take: Take, points: Sequence[int] | None = None, *, method:
                                                                "method": method})
     if method == "blink" and blink_depths is None and rom is not None:
         blink_depths = blink_depths_for(take, rom)
+    if method == "face_model" and face_model is None and rom is not None:
+        face_model = face_model_for(take, rom=rom)
     new, filled = _fill_arrays(take, frames, fill, known, method, params, face_model, n_neighbours, momentum_s,
                                blink_depths)
     recon = take.recon[frames].copy()

@@ -201,18 +201,16 @@ def run_pipeline(session: Session, options: PipelineOptions, *, report: Report |
             numbers = track_both_ways(session, frame, progress=progress, cancel=cancel)
         done("track", t0, **numbers)
     if options.fill is not None and not _cancelled(cancel):
-        from carapost.ops.fill import face_model_for, interpolate_gaps
+        from carapost.ops.fill import interpolate_gaps
 
         t0 = time.perf_counter()
         with stage("interpolate gaps"):
-            rom = model = None
+            rom = None
             if options.rom is not None and options.fill in ("blink", "face_model"):
                 from carapost.ops.rom import read_rom
 
                 rom = read_rom(options.rom, n_cameras=take.n_cameras)   # eyelid depths / the face model
-                if options.fill == "face_model":
-                    model = face_model_for(take, rom=rom)
-            change = interpolate_gaps(take, method=options.fill, rom=rom, face_model=model)
+            change = interpolate_gaps(take, method=options.fill, rom=rom)
             session.apply(change)
         done("interpolate gaps", t0, **{k: v for k, v in change.report.items()
                                         if k in ("filled", "single_sensor", "unfilled")})

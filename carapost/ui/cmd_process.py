@@ -128,7 +128,8 @@ def _reported(w: "MainWindow", title: str, build: Callable[[], Any]) -> None:
 
 def interpolate_gaps(w: "MainWindow") -> None:
     take, cols = w.doc.take, w.doc.selected_columns()
-    _reported(w, "Interpolate Gaps", lambda: ops("fill").interpolate_gaps(take, cols or None))
+    rom = w.doc.rom                      # the loaded ROM: eyelid depths (blink), the face model (face_model)
+    _reported(w, "Interpolate Gaps", lambda: ops("fill").interpolate_gaps(take, cols or None, rom=rom))
 
 
 def stabilize_manual(w: "MainWindow") -> None:

@@ -328,3 +328,19 @@ def test_align_raw_keeps_projections(synth, undo_check):
     take.xyz[5, col(take, "Chin")] = np.nan
     with pytest.raises(ValueError, match="Chin has no position in frame 5"):
         align_data(take, pts[:2] + [col(take, "Chin")])
+
+
+def test_method_property_chooses_the_method(synth):
+    """The Gap-Filling Parameters' Method is what Interpolate Gaps uses when none is given
+    (the GUI's menu entry and the API's default); an unknown method is refused."""
+    from carapost.model.params import FILL_METHODS
+
+    take = take_from_truth(synth)
+    assert take.params.gapfill.method == "neighbours" and "blink" in FILL_METHODS
+    for m in FILL_METHODS:
+        t = copy.deepcopy(take)
+        t.params.gapfill.method = m
+        rep = interpolate_gaps(t).report
+        assert rep["method"] == m and rep["filled"] > 0
+    with pytest.raises(ValueError, match="Method"):
+        GapFillingParameters(method="spline")
