@@ -55,6 +55,7 @@ class Document(QObject):
     selectionChanged = Signal()
     displayChanged = Signal()
     busyChanged = Signal(bool)
+    activeCameraChanged = Signal()
 
     def __init__(self, parent: QObject | None = None) -> None:
         super().__init__(parent)
@@ -255,6 +256,12 @@ class Document(QObject):
         if cams != self.sel_cameras:
             self.sel_cameras = cams
             self.selectionChanged.emit()
+
+    def set_active_camera(self, camera: int | None) -> None:
+        """The camera view last clicked (what camera-wise commands use without a selection)."""
+        if camera != self.active_camera:
+            self.active_camera = camera
+            self.activeCameraChanged.emit()
 
     def toggle_camera(self, camera: int) -> None:
         cams = set(self.sel_cameras)

@@ -143,6 +143,17 @@ def test_selection_pane_camera_selection(loaded):
     assert [c.rotation for c in w.doc.take.cameras] == [0, 0, 0, 0]
 
 
+def test_selection_pane_follows_the_active_camera_view(qtbot, loaded):
+    """Clicking in a camera view makes it the active one; the pane says so at once."""
+    w = loaded
+    pane = w.panes["selection"]
+    w.workspace.set_layout(4)
+    view = w.workspace.camera_views()[1]
+    qtbot.mouseClick(view, Qt.MouseButton.LeftButton, pos=view.rect().center())
+    assert w.doc.active_camera == view.camera
+    assert pane.summary.text().endswith(f"active camera view: {view.camera}")
+
+
 def test_selected_point_pane(qtbot, loaded, tiny_files):
     synth, _ = tiny_files
     inject_truth(loaded, synth, markers=3)

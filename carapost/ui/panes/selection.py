@@ -45,6 +45,7 @@ class SelectionPane(QWidget):
         doc.sessionChanged.connect(self.rebuild)
         doc.takeChanged.connect(self.refresh)
         doc.selectionChanged.connect(self.refresh)
+        doc.activeCameraChanged.connect(self.refresh)
         self.rebuild()
 
     def rebuild(self) -> None:

@@ -351,7 +351,7 @@ class CameraView(OverlayPainting, BaseView):
         shift_alt = bool(mods & (Qt.KeyboardModifier.ShiftModifier | Qt.KeyboardModifier.AltModifier))
         pos = e.position()
         if self._valid_camera():
-            self.doc.active_camera = self.camera
+            self.doc.set_active_camera(self.camera)
         both = (buttons & Qt.MouseButton.LeftButton) and (buttons & Qt.MouseButton.RightButton)
         if (btn == Qt.MouseButton.MiddleButton or both) and (shift_alt or both):
             self._drag = {"kind": "pan", "last": pos}
