@@ -83,7 +83,7 @@ def _run(session: Any, synth: Any, files: dict, rep: _Report, out: Path, total0:
     t0 = time.perf_counter()
     numbers = track_both_ways(session, frame, progress=progress_bar)
     rep.stage("track forwards + backwards", time.perf_counter() - t0, **numbers)
-    _score(rep, take, synth, None, "tracking accuracy, all frames")
+    _score(rep, take, synth, None, "accuracy after tracking")
 
     t0 = time.perf_counter()
     change = interpolate_gaps(take)
