@@ -31,7 +31,8 @@ from ..model.params import Initialize3DParameters
 from .camera import Intrinsics
 from .epipolar_match import (DetectionArrays, consistent_views, detection_arrays, pair_candidates,
                              triangulate_points)
-from .init3d import DEFAULT_CADDIES, Init3DResult, brim_observations, brim_region_mask, check_cameras, initialize_3d
+from .init3d import (DEFAULT_CADDIES, Init3DResult, brim_observations, brim_region_mask, check_cameras, exclusions,
+                     initialize_3d)
 from .init3d_steps import CHI2_ADD_VIEW, NOISE_FLOOR_PX
 
 __all__ = ["auto_initialize", "multi_view_hypotheses", "select_hypotheses"]
@@ -218,15 +219,7 @@ def auto_initialize(detections: Sequence[Any], intrinsics: Sequence[Intrinsics],
     if not max_reprojection_px > 0:
         raise ValueError(f"max_reprojection_px must be positive, got {max_reprojection_px}")
     n = [len(d) for d in dets]
-    usable = [np.ones(k, bool) for k in n]
-    if exclude is not None:
-        if len(exclude) != C:
-            raise ValueError(f"exclude has {len(exclude)} masks for {C} cameras")
-        for c in range(C):
-            m = np.asarray(exclude[c], bool).ravel()
-            if m.shape != (n[c],):
-                raise ValueError(f"exclude mask of camera {c} has {m.size} entries for {n[c]} detections")
-            usable[c] &= ~m
+    usable = [~e for e in exclusions(dets, exclude)]
     if brim_xyz is not None:
         brim = np.asarray(brim_xyz, float).reshape(-1, 3)
         bd = brim_observations(brim, dets, intrinsics, R, t, radius=max_reprojection_px)

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .blob_score import asymmetry, profile_rms, shape_residual
+from .blob_score import asymmetry, ellipse_distance, profile_rms, shape_residual
 
 __all__ = ["PatchFit", "fit_patches", "patch_half_size", "LEVELS"]
 
@@ -342,21 +342,6 @@ def _moments(q: np.ndarray, mono: np.ndarray) -> tuple:
     return mx, my, cxx, cxy, cyy, m0
 
 
-def _ellipse_distance(mx: np.ndarray, my: np.ndarray, cov: tuple, dxf: np.ndarray, dyf: np.ndarray) -> np.ndarray:
-    """Approximate signed distance (px, negative inside) of every patch pixel from the ellipse
-    of centre ``mx, my`` whose uniform-disc covariance is ``cov = (cxx, cxy, cyy)``."""
-    cxx, cxy, cyy = cov
-    det = np.maximum(cxx * cyy - cxy * cxy, 1e-9)
-    ia = (cyy / (4 * det)).astype(np.float32)[:, None, None]
-    ib = (-cxy / (4 * det)).astype(np.float32)[:, None, None]
-    ic = (cxx / (4 * det)).astype(np.float32)[:, None, None]
-    ux = dxf[None] - mx.astype(np.float32)[:, None, None]
-    uy = dyf[None] - my.astype(np.float32)[:, None, None]
-    r2 = ux * ux + uy * uy
-    rho2 = np.maximum(ia * ux * ux + 2 * ib * ux * uy + ic * uy * uy, 1e-12)
-    return np.sqrt(r2) - np.sqrt(r2 / rho2)
-
-
 #: Angular sectors of the local background, and the highest level (fraction of the dot's
 #: full contrast) a sector's background may take.
 _N_SECTORS = 8
@@ -603,7 +588,7 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
     m0_full = np.maximum(m0, 1e-9)
     q_full = q
     for _ in range(_TRIM_ITERS):
-        dist = _ellipse_distance(mx, my, (cxx, cxy, cyy), dxf, dyf)
+        dist = ellipse_distance(mx, my, (cxx, cxy, cyy), dxf, dyf)[0]
         q = np.where(dist > _TRIM_MARGIN, 0.0, q_full)
         mx, my, cxx, cxy, cyy, m0 = _moments(q, mono)
     m0s = np.maximum(m0, 1e-9)

@@ -244,6 +244,23 @@ def dense_probability(snr: np.ndarray, coef: np.ndarray | None = None) -> np.nda
 
 # -- shape measurements ----------------------------------------------------------------------
 
+def ellipse_distance(mx: np.ndarray, my: np.ndarray, cov: tuple, dxf: np.ndarray,
+                     dyf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Approximate signed distance (px, negative inside) of every patch pixel ``(N, S, S)`` from
+    the ellipse of centre ``mx, my`` whose uniform-disc covariance is ``cov = (cxx, cxy, cyy)``,
+    and the squared normalised elliptical radius of every pixel (1 on the ellipse)."""
+    cxx, cxy, cyy = cov
+    det = np.maximum(cxx * cyy - cxy * cxy, 1e-9)
+    ia = (cyy / (4 * det)).astype(np.float32)[:, None, None]
+    ib = (-cxy / (4 * det)).astype(np.float32)[:, None, None]
+    ic = (cxx / (4 * det)).astype(np.float32)[:, None, None]
+    ux = dxf[None] - mx.astype(np.float32)[:, None, None]
+    uy = dyf[None] - my.astype(np.float32)[:, None, None]
+    r2 = ux * ux + uy * uy
+    rho2 = np.maximum(ia * ux * ux + 2 * ib * ux * uy + ic * uy * uy, 1e-12)
+    return np.sqrt(r2) - np.sqrt(r2 / rho2), rho2       # = |u| (1 - 1/rho): negative inside
+
+
 def shape_residual(q: np.ndarray, mx: np.ndarray, my: np.ndarray, cov: tuple, dxf: np.ndarray,
                    dyf: np.ndarray, win: np.ndarray, m0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Mismatch between soft regions ``q (N, S, S)`` and their moment ellipses.
@@ -254,17 +271,8 @@ def shape_residual(q: np.ndarray, mx: np.ndarray, my: np.ndarray, cov: tuple, dx
     ellipse| / m0`` (N,) and the squared normalised elliptical radius ``(N, S, S)`` of every
     pixel (1 on the ellipse).
     """
-    cxx, cxy, cyy = cov
     n = q.shape[0]
-    det = np.maximum(cxx * cyy - cxy * cxy, 1e-9)
-    ia = (cyy / (4 * det)).astype(np.float32)[:, None, None]
-    ib = (-cxy / (4 * det)).astype(np.float32)[:, None, None]
-    ic = (cxx / (4 * det)).astype(np.float32)[:, None, None]
-    ux = dxf[None] - mx.astype(np.float32)[:, None, None]
-    uy = dyf[None] - my.astype(np.float32)[:, None, None]
-    r2 = ux * ux + uy * uy
-    rho_e2 = np.maximum(ia * ux * ux + 2 * ib * ux * uy + ic * uy * uy, 1e-12)
-    dist = np.sqrt(r2) - np.sqrt(r2 / rho_e2)       # = |u| (1 - 1/rho): negative inside
+    dist, rho_e2 = ellipse_distance(mx, my, cov, dxf, dyf)
     q_ell = np.clip(0.5 - dist, 0.0, 1.0)
     shape = np.einsum("ij,ij->i", np.abs(q - q_ell).reshape(n, -1), win.reshape(n, -1),
                       dtype=np.float64) / m0

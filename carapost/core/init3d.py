@@ -413,7 +413,8 @@ class _Run:
                 "final_cost": res.final_cost, "success": res.success, "nfev": res.nfev}
 
 
-def _exclusions(dets: Sequence[DetectionArrays], exclude: Sequence[np.ndarray] | None) -> list[np.ndarray]:
+def exclusions(dets: Sequence[DetectionArrays], exclude: Sequence[np.ndarray] | None) -> list[np.ndarray]:
+    """Per camera, the detections the caller excluded (bool (n_c,)); checks the masks' shapes."""
     C = len(dets)
     n = [len(d) for d in dets]
     excluded = [np.zeros(k, bool) for k in n]
@@ -503,7 +504,7 @@ def initialize_3d(detections: Sequence[Any], intrinsics: Sequence[Intrinsics], R
                               "dropped_off_surface": 0, "reassigned": 0, "bundle": None, "seed_bundle": None}
 
     # 1. exclusions: explicit, the brim's detections, the brim's image region (seeds are kept)
-    excluded = _exclusions(dets, exclude)
+    excluded = exclusions(dets, exclude)
     seeds_ps = PointSet.empty(C)
     seeds_ps.add(seed_det, seed=True, caddy=-1, pair=(-1, -1))
     seed_used = seeds_ps.used(n)

@@ -20,6 +20,7 @@ Functions and arguments given to a process or Dask pool must be picklable.
 from __future__ import annotations
 
 import contextlib
+from abc import ABC, abstractmethod
 import multiprocessing
 import os
 from collections.abc import Callable, Iterable, Iterator
@@ -67,7 +68,7 @@ def cpu_count() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-class Pool:
+class Pool(ABC):
     """The interface of the pools (see the module docstring)."""
 
     #: Tasks run in another process: their log records do not reach this process's handlers.
@@ -77,11 +78,13 @@ class Pool:
     #: Shown in summaries: "inline", "processes" or the scheduler address.
     where: str = ""
 
+    @abstractmethod
     def submit(self, fn: Callable[..., Any], /, *args: Any) -> Any:
-        raise NotImplementedError
+        """Start ``fn(*args)``; returns a handle (a future)."""
 
+    @abstractmethod
     def wait_any(self, handles: Iterable[Any]) -> tuple[list[Any], list[Any]]:
-        raise NotImplementedError
+        """Block until at least one handle is done: ``(done, pending)``."""
 
     def result(self, handle: Any) -> Any:
         return handle.result()

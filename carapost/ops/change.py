@@ -11,6 +11,7 @@ take is cheap. :func:`take_diff` compares two takes (used by the tests of every 
 from __future__ import annotations
 
 import copy
+from abc import ABC, abstractmethod
 import dataclasses
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -34,16 +35,18 @@ __all__ = [
 ]
 
 
-class Change:
+class Change(ABC):
     """Base class: ``redo`` applies the change to a take, ``undo`` reverts it."""
 
     text: str = ""
 
-    def redo(self, take: Take) -> None:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def redo(self, take: Take) -> None:
+        """Apply the change to ``take``."""
 
-    def undo(self, take: Take) -> None:  # pragma: no cover - abstract
-        raise NotImplementedError
+    @abstractmethod
+    def undo(self, take: Take) -> None:
+        """Revert the change on ``take``."""
 
     @property
     def nbytes(self) -> int:

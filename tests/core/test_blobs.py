@@ -421,12 +421,12 @@ def test_dots_on_a_dark_band_get_alternative_outlines(monkeypatch):
 def test_many_candidates_do_not_overflow_remap():
     """A large textured image gives thousands of candidates; the context sampling must not hit
     cv2.remap's 32767-pixel map limit (it did on the Pose2Sim frames)."""
-    from carapost.core.blobs import _sample
+    from carapost.core.blob_context import sample_bilinear
 
     img = (np.random.default_rng(0).random((200, 300)) * 255).astype(np.float32)
     x = np.random.default_rng(1).uniform(0, 299, 70_000).astype(np.float32)
     y = np.random.default_rng(2).uniform(0, 199, 70_000).astype(np.float32)
-    v = _sample(img, x, y)
+    v = sample_bilinear(img, x, y)
     xi, yi = np.floor(x).astype(int), np.floor(y).astype(int)
     fx, fy = x - xi, y - yi
     x1, y1 = np.minimum(xi + 1, 299), np.minimum(yi + 1, 199)
