@@ -2,9 +2,9 @@
 
 from __future__ import annotations
 
+import io
 import json
 import os
-import tempfile
 from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
@@ -12,7 +12,9 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from carapost.io.atomic import atomic_write_bytes
 from carapost.io.brim import save_brim_json, write_brim_svg
+from carapost.io.seeds import write_seeds
 from carapost.model.params import BlobParameters
 
 from .seeds import seeds_for
@@ -21,20 +23,6 @@ if TYPE_CHECKING:  # pragma: no cover
     from .take import SynthTake
 
 __all__ = ["write_take", "nominal_calibration"]
-
-
-def _atomic(path: Path, write: Callable[[str], None], suffix: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
-    os.close(fd)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
 
 
 def nominal_calibration(synth: "SynthTake"):  # -> carapost.io.calibration.Calibration
@@ -122,15 +110,12 @@ def write_take(synth: "SynthTake", out_dir: str | os.PathLike, name: str = "Synt
     paths["brim_svg"] = write_brim_svg(out / f"{name}_brim.svg", synth.brim)
     seeds = seeds_for(synth, frame=frames[0])
     paths["seeds"] = out / f"{name}_seeds.json"
-    _atomic(paths["seeds"], lambda tmp: Path(tmp).write_text(json.dumps(seeds, indent=1) + "\n", encoding="utf-8"),
-            ".json")
+    write_seeds(paths["seeds"], seeds)
     paths["truth"] = out / f"{name}_truth.npz"
     arrays = synth.truth.arrays()
     arrays["config_json"] = np.array(json.dumps(cfg.to_dict()))
 
-    def _save(tmp: str) -> None:
-        with open(tmp, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-
-    _atomic(paths["truth"], _save, ".npz")
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    atomic_write_bytes(paths["truth"], buf.getvalue())
     return paths
