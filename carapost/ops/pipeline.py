@@ -178,12 +178,14 @@ def run_pipeline(session: Session, options: PipelineOptions, *, report: Report |
 
     # 4. Initialize 3D (or from the ROM).
     t0 = time.perf_counter()
+    rom = None
     if options.rom is not None:
-        from carapost.ops.rom import initialize_from_rom, load_rom
+        from carapost.ops.rom import initialize_from_rom, load_rom, read_rom
 
         with stage("initialize from ROM"):
-            session.apply(load_rom(take, options.rom))
-            session.apply(initialize_from_rom(take, session.image, frame))
+            rom = read_rom(options.rom, n_cameras=take.n_cameras)     # read once: also used by the fill
+            session.apply(load_rom(take, options.rom, rom=rom))
+            session.apply(initialize_from_rom(take, session.image, frame, rom=rom))
         face = take.face_points()
         n3d = int(np.isfinite(take.xyz[frame, face]).all(-1).sum())
         done("initialize from ROM", t0, points=n3d)
@@ -205,12 +207,7 @@ def run_pipeline(session: Session, options: PipelineOptions, *, report: Report |
 
         t0 = time.perf_counter()
         with stage("interpolate gaps"):
-            rom = None
-            if options.rom is not None and options.fill in ("blink", "face_model"):
-                from carapost.ops.rom import read_rom
-
-                rom = read_rom(options.rom, n_cameras=take.n_cameras)   # eyelid depths / the face model
-            change = interpolate_gaps(take, method=options.fill, rom=rom)
+            change = interpolate_gaps(take, method=options.fill, rom=rom)   # the ROM: eyelid depths, face model
             session.apply(change)
         done("interpolate gaps", t0, **{k: v for k, v in change.report.items()
                                         if k in ("filled", "single_sensor", "unfilled")})
