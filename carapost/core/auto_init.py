@@ -16,7 +16,12 @@ cameras at once:
    to a better point);
 4. the accepted points then serve as seeds for :func:`~carapost.core.init3d.initialize_3d`
    (growing two-view points within the caddies, merging, attaching, bundling), or are only
-   consolidated when ``grow`` is off.
+   consolidated when ``grow`` is off;
+5. the camera poses stay bundled only when the points determine them
+   (:func:`pose_redundancy`): with a handful of two- and three-view points and no brim, a
+   bundle fits the poses to the points' own errors and its residuals (near zero) say nothing;
+   the result is then recomputed with the input poses and ``report["auto"]["poses_bundled"]``
+   is False.
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ from .init3d import (DEFAULT_CADDIES, Init3DResult, brim_observations, brim_regi
                      initialize_3d)
 from .init3d_steps import CHI2_ADD_VIEW, NOISE_FLOOR_PX
 
-__all__ = ["auto_initialize", "multi_view_hypotheses", "select_hypotheses"]
+__all__ = ["auto_initialize", "multi_view_hypotheses", "pose_redundancy", "select_hypotheses"]
 
 
 def multi_view_hypotheses(dets: Sequence[DetectionArrays], intrinsics: Sequence[Intrinsics], R: np.ndarray,
@@ -197,12 +202,16 @@ def auto_initialize(detections: Sequence[Any], intrinsics: Sequence[Intrinsics],
         merging, attaching, bundling). Off: the points found are returned as they are (bundled
         if ``bundle``).
     bundle : bool
-        Bundle-adjust poses and points.
+        Bundle-adjust poses and points. The poses stay bundled only when the points leave at
+        least :data:`MIN_POSE_REDUNDANCY` degrees of freedom per pose parameter
+        (:func:`pose_redundancy`); otherwise the result is recomputed with the input poses.
 
     Returns
     -------
     Init3DResult
-        ``from_seed`` is False for every point; ``report["auto"]`` holds the hypothesis counts.
+        ``from_seed`` is False for every point; ``report["auto"]`` holds the hypothesis counts
+        and ``poses_bundled`` (with ``bundle_dof`` and ``pose_parameters`` when bundling was
+        asked for).
 
     Raises
     ------
@@ -265,6 +274,17 @@ def auto_initialize(detections: Sequence[Any], intrinsics: Sequence[Intrinsics],
             seeds = np.concatenate([res.det_index, more])
             res = initialize_3d(detections, intrinsics, res.R, res.t, _as_seeds(seeds), params,
                                 **kw)  # type: ignore[arg-type]
+    # the poses: bundled only when the points determine them (else the residuals are fitted away)
+    auto["poses_bundled"] = False
+    if bundle and res.n_points:
+        dof, n_pose = pose_redundancy(res.det_index, res.brim_det_index)
+        auto["bundle_dof"], auto["pose_parameters"] = dof, n_pose
+        if dof >= MIN_POSE_REDUNDANCY * n_pose:
+            auto["poses_bundled"] = True
+        else:
+            kw_fixed = {**kw, "bundle": False}
+            res = initialize_3d(detections, intrinsics, R, t, _as_seeds(res.det_index), params,
+                                **kw_fixed)  # type: ignore[arg-type]
     res.report["auto"] = auto
     return Init3DResult(xyz=res.xyz, det_index=res.det_index, xy=res.xy, from_seed=np.zeros(res.n_points, bool),
                         caddy=res.caddy, pair=res.pair, residuals=res.residuals, R=res.R, t=res.t,
@@ -273,6 +293,42 @@ def auto_initialize(detections: Sequence[Any], intrinsics: Sequence[Intrinsics],
 
 #: Fewest points of stage A to measure the tolerances of stage B on.
 MIN_MEASURED = 5
+#: The poses are bundled only when the residuals leave at least this many degrees of freedom
+#: per pose parameter (:func:`pose_redundancy`). The synthetic takes (35-156 markers in four
+#: views, 18 brim dots) have 8-18; the Pose2Sim demo's frame 0 (about ten two- and three-view
+#: points, no brim) has less than 1, and a bundle there drives its residuals to ~0 px.
+MIN_POSE_REDUNDANCY = 2.0
+
+
+def pose_redundancy(det_index: np.ndarray, brim_det_index: np.ndarray | None = None) -> tuple[int, int]:
+    """Degrees of freedom a bundle of poses and points leaves, and its number of pose parameters.
+
+    Parameters
+    ----------
+    det_index : int array (P, C)
+        The points' views (-1 none); each view is two residuals, each point three unknowns.
+    brim_det_index : int array (B, C), optional
+        Views of the brim dots: fixed points, two residuals per view and no unknowns; with
+        them the world frame is pinned, without them seven parameters (a similarity) are free.
+
+    Returns
+    -------
+    dof : int
+        Residuals minus unknowns (the gauge removed).
+    n_pose : int
+        Six per camera with at least one view.
+    """
+    det_index = np.asarray(det_index)
+    seen = (det_index >= 0).any(axis=0)
+    n_res = 2 * int((det_index >= 0).sum())
+    pinned = brim_det_index is not None and bool((np.asarray(brim_det_index) >= 0).any())
+    if pinned:
+        brim = np.asarray(brim_det_index) >= 0
+        n_res += 2 * int(brim.sum())
+        seen |= brim.any(axis=0)
+    n_pose = 6 * int(seen.sum())
+    gauge = 0 if pinned else 7
+    return n_res - 3 * len(det_index) - n_pose + gauge, n_pose
 #: Significance of the chi-square test on a point's reprojection errors.
 ERROR_TEST_P = 0.999
 
