@@ -31,7 +31,10 @@ This module models such a gap as an *excursion* of the marker relative to its ne
    partly closed lid seen going into and coming out of the gap), with hinge penalties for a
    visibility level ``h`` shared by the blinks: the seen frames are below it and the hidden
    frames above it — the marker is hidden *because* the lid is closing.
-5. **Fill**: ``baseline(f) + D A(f) R(f) v`` in the gap, ``R(f)`` the neighbourhood's rotation.
+   The pulse rides on a linear drift of the baseline along ``v`` per blink (small, softly
+   pulled to zero: the neighbour baseline of a sparse marker set drifts when the brows move).
+5. **Fill**: ``baseline(f) + (D A(f) + drift(f)) R(f) v`` in the gap, ``R(f)`` the
+   neighbourhood's rotation.
 
 Gaps that are not excursion gaps, gaps whose excursion is not along the marker's common
 direction, blinks whose pulse leaves a residual above ``max(0.3 mm, 5 % of D)`` at the seen
@@ -39,20 +42,25 @@ frames, markers whose fit fails, and markers with a known depth smaller than the
 seen next to their gaps keep the neighbour fill.
 
 The depth is the weak part: the take shows the lid only part-way closed, and a shallow blink
-with a long closed hold fits those frames about as well as a deep one with a short hold. A
-depth measured on a range-of-motion take (:func:`excursion_depths`) removes the ambiguity.
+with a long closed hold fits those frames as well as a deep one with a short hold. So the
+depth is given — measured on a range-of-motion take (:func:`excursion_depths`), or taken from
+the eye's geometry (``depth_model="geometry"``, the default: the lower-lid marker the lid
+closes onto, or a palpebral-fissure prior; :mod:`carapost.core.gapfill_lid`) — or, with
+``depth_model="fit"``, fitted (loosely) with the pulse.
 
 Array contract: ``xyz (F, P, 3)`` mm with NaN gaps; masks ``(F, P)`` bool; frames 0-based.
 """
 
 from __future__ import annotations
 
+from collections.abc import Collection
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.optimize import least_squares
 
 from .gapfill import GapFillResult, distance_spread, fill_gaps, gap_runs, neighbour_motion
+from .gapfill_lid import LID_MARKER_OFFSET_MM, PALPEBRAL_FISSURE_MM, lid_closing_depth
 
 __all__ = ["BlinkFit", "blink_pulse", "fill_blink_gaps", "excursion_depths"]
 
@@ -66,6 +74,13 @@ _MIN_COS = 0.7
 #: ... and the excursion one frame further from the gap must be at most this share of the one
 #: at its edge (a blink is sudden; slow drifts from the neighbourhood are not blinks).
 _MAX_EDGE_RATIO = 0.6
+#: The pulse rides on a linear drift of the window baseline along the closing direction (a
+#: brow raise moves the lid and the brows by different amounts, so the neighbour baseline
+#: drifts): level at the gap's middle and change from there to the window's ends, each within
+#: +-_DRIFT_MAX_MM mm, softly pulled to zero (weight _DRIFT_WEIGHT per mm).
+_DRIFT = True
+_DRIFT_MAX_MM = 2.0
+_DRIFT_WEIGHT = 0.3
 #: A blink whose pulse leaves an RMS residual above ``max(_MAX_RMS_MM, _MAX_RMS_FRACTION * D)``
 #: at its seen frames is not a blink: it keeps the neighbour fill.
 _MAX_RMS_MM = 0.3
@@ -89,6 +104,12 @@ class BlinkFit:
         Per gap: its frames (inclusive) and the fitted onset (frame) and durations (frames).
     rms_mm : float
         RMS residual of the fit at the known window frames, mm.
+    depth_source : str
+        Where ``depth_mm`` came from: ``"given"`` (``depths``, e.g. a ROM), ``"lower_lid"`` /
+        ``"fissure_prior"`` (the eye's geometry, :mod:`carapost.core.gapfill_lid`) or
+        ``"fit"`` (fitted to the pulse).
+    partner : int
+        The lower-lid marker the lid closes onto (``"lower_lid"``; else -1).
     """
 
     point: int
@@ -96,6 +117,8 @@ class BlinkFit:
     depth_mm: float
     pulses: list[tuple[int, int, float, float, float, float]] = field(default_factory=list)
     rms_mm: float = float("nan")
+    depth_source: str = "fit"
+    partner: int = -1
 
 
 def blink_pulse(f: np.ndarray, t: float, rise: float, hold: float, fall: float) -> np.ndarray:
@@ -162,16 +185,19 @@ def _baseline(xyz: np.ndarray, known: np.ndarray, p: int, wa: int, wb: int, fram
 
 
 def _fit_point(blinks: list[dict], fps: float,
-               depth: float | None = None) -> tuple[float, list[np.ndarray], list[float]] | None:
+               depth: float | None = None) -> tuple[float, list[np.ndarray], list[float], list[np.ndarray]] | None:
     """Least-squares fit of the depth and per-blink pulses to the excursions of one point.
 
     Each blink dict has ``g0, g1`` (gap frames), ``f`` (known window frames, float), ``s``
     (excursion along the direction at those frames, mm) and ``hidden`` (gap frames, float).
     Parameters: depth ``D`` (fixed to ``depth`` when given), a visibility level ``h`` shared by
     the blinks (the marker is seen below it and hidden above it: hinge penalties), and per
-    blink ``t, hold, rise / fall, fall``. A second pass pulls each blink's durations towards
-    the first pass's geometric means (:data:`_SHARE_WEIGHT`). Returns ``(D, [t, rise, hold,
-    fall] per blink, RMS residual per blink mm)`` or None."""
+    blink ``t, hold, rise / fall, fall`` and (:data:`_DRIFT`) a linear drift of the baseline
+    along the direction, ``c0 + c1 (f - mid) / half`` (``mid``, ``half``: the gap's middle and
+    the window's half length, in each blink dict), softly pulled to zero. A second pass pulls
+    each blink's durations towards the first pass's geometric means (:data:`_SHARE_WEIGHT`).
+    Returns ``(D, [t, rise, hold, fall] per blink, RMS residual per blink mm, [c0, c1] per
+    blink mm)`` or None."""
     max_dur = max(2.0, 0.5 * fps)
     smax = max((float(np.max(b["s"])) for b in blinks if len(b["s"])), default=0.0)
     if smax <= 0 and depth is None:
@@ -182,24 +208,34 @@ def _fit_point(blinks: list[dict], fps: float,
         lo, hi = [smax, 0.0], [20.0 * smax, 20.0 * smax]
     else:
         lo, hi = [depth - 1e-9, 0.0], [depth + 1e-9, 20.0 * max(smax, depth)]
+    K = 6 if _DRIFT else 4
     for b in blinks:
         g0, g1 = b["g0"], b["g1"]
-        lo += [g0 - max_dur - 1.0, 0.0, 0.1, 0.5]
-        hi += [g0 + 0.5, (g1 - g0 + 1) + 2.0, 1.0, max_dur]
+        lo += [g0 - max_dur - 1.0, 0.0, 0.1, 0.5] + ([-_DRIFT_MAX_MM, -_DRIFT_MAX_MM] if _DRIFT else [])
+        hi += [g0 + 0.5, (g1 - g0 + 1) + 2.0, 1.0, max_dur] + ([_DRIFT_MAX_MM, _DRIFT_MAX_MM] if _DRIFT else [])
     lo_a, hi_a = np.array(lo), np.array(hi)
     # which parameters each residual row depends on (finite differences grouped accordingly)
     rows = []
     for i, b in enumerate(blinks):
-        m = 2 * len(b["f"]) + len(b["hidden"]) + 2
-        blk = np.zeros((m, 2 + 4 * n), bool)
+        m = 2 * len(b["f"]) + len(b["hidden"]) + 2 + (2 if _DRIFT else 0)
+        blk = np.zeros((m, 2 + K * n), bool)
         blk[:, :2] = True
-        blk[:, 2 + 4 * i: 6 + 4 * i] = True
+        blk[:, 2 + K * i: 2 + K * (i + 1)] = True
         rows.append(blk)
     sparsity = np.concatenate(rows)
 
     def pulse(x: np.ndarray, i: int) -> tuple[float, float, float, float]:
-        t, hold, q, fall = x[2 + 4 * i: 6 + 4 * i]
+        t, hold, q, fall = x[2 + K * i: 6 + K * i]
         return t, max(0.5, q * fall), hold, fall       # closing no slower than reopening
+
+    def drift(x: np.ndarray, i: int, f: np.ndarray) -> np.ndarray:
+        """The baseline's drift along the direction at frames ``f``: ``c0`` at the gap's middle,
+        ``c1`` at the window's ends (a line)."""
+        if not _DRIFT:
+            return np.zeros(len(f))
+        b = blinks[i]
+        c0, c1 = x[6 + K * i: 8 + K * i]
+        return c0 + c1 * (f - b["mid"]) / b["half"]
 
     def make_residuals(means: tuple[float, float] | None):
         w = 0.0 if means is None else _SHARE_WEIGHT
@@ -211,8 +247,10 @@ def _fit_point(blinks: list[dict], fps: float,
                 p = pulse(x, i)
                 seen = D * blink_pulse(b["f"], *p)
                 share = [0.0, 0.0] if means is None else [w * (np.log(p[1]) - means[0]), w * (np.log(p[3]) - means[1])]
-                out += [seen - b["s"], np.maximum(0.0, seen - h),
+                out += [seen + drift(x, i, b["f"]) - b["s"], np.maximum(0.0, seen - h),
                         np.maximum(0.0, h - D * blink_pulse(b["hidden"], *p)), share]
+                if _DRIFT:
+                    out.append(_DRIFT_WEIGHT * x[6 + K * i: 8 + K * i])
             return np.concatenate(out)
         return residuals
 
@@ -224,7 +262,7 @@ def _fit_point(blinks: list[dict], fps: float,
             g0, g1 = b["g0"], b["g1"]
             t = g0 - 0.5 - 0.5 * r0                   # half closed between the last seen frame and the gap
             hold = max(0.0, (g1 + 0.5 - 0.5 * f0) - (t + r0))
-            x0 += [t, hold, min(1.0, r0 / f0), f0]
+            x0 += [t, hold, min(1.0, r0 / f0), f0] + ([0.0, 0.0] if _DRIFT else [])
         x0_a = np.clip(np.array(x0), lo_a + 1e-10, hi_a - 1e-10)
         sol = least_squares(make_residuals(None), x0_a, bounds=(lo_a, hi_a), x_scale="jac", max_nfev=200,
                             jac_sparsity=sparsity)
@@ -238,9 +276,10 @@ def _fit_point(blinks: list[dict], fps: float,
         means = (float(np.log(durs[:, 1]).mean()), float(np.log(durs[:, 3]).mean()))
         x = least_squares(make_residuals(means), np.clip(x, lo_a + 1e-10, hi_a - 1e-10), bounds=(lo_a, hi_a),
                           x_scale="jac", max_nfev=200, jac_sparsity=sparsity).x
-    rms = [float(np.sqrt(np.mean((x[0] * blink_pulse(b["f"], *pulse(x, i)) - b["s"]) ** 2))) if len(b["f"])
-           else float("nan") for i, b in enumerate(blinks)]
-    return float(x[0]), [np.array(pulse(x, i)) for i in range(n)], rms
+    rms = [float(np.sqrt(np.mean((x[0] * blink_pulse(b["f"], *pulse(x, i)) + drift(x, i, b["f"]) - b["s"]) ** 2)))
+           if len(b["f"]) else float("nan") for i, b in enumerate(blinks)]
+    drifts = [x[6 + K * i: 8 + K * i].copy() if _DRIFT else np.zeros(2) for i in range(n)]
+    return float(x[0]), [np.array(pulse(x, i)) for i in range(n)], rms, drifts
 
 
 def excursion_depths(xyz: np.ndarray, points: np.ndarray, *, n_neighbours: int = 8, rigidity_weight: float = 30.0,
@@ -294,7 +333,9 @@ def excursion_depths(xyz: np.ndarray, points: np.ndarray, *, n_neighbours: int =
 def fill_blink_gaps(xyz: np.ndarray, fill: np.ndarray, *, frame_rate: float, known: np.ndarray | None = None,
                     base: GapFillResult | None = None, window_s: float = 0.2, min_excursion_mm: float = 1.0,
                     max_blink_s: float = 0.5, n_neighbours: int = 8, rigidity_weight: float = 30.0,
-                    depths: dict[int, float] | None = None,
+                    depths: dict[int, float] | None = None, depth_model: str = "geometry",
+                    lid_marker_offset_mm: float = LID_MARKER_OFFSET_MM,
+                    fissure_mm: float = PALPEBRAL_FISSURE_MM, lid_points: Collection[int] | None = None,
                     **neighbour_options: object) -> tuple[GapFillResult, list[BlinkFit]]:
     """Fill gaps by the neighbour method, and blink-like gaps by a fitted pulse (module doc).
 
@@ -324,8 +365,19 @@ def fill_blink_gaps(xyz: np.ndarray, fill: np.ndarray, *, frame_rate: float, kno
         As for :func:`~carapost.core.gapfill.fill_gaps` (baseline prediction).
     depths : dict {point column: mm}, optional
         Known full excursion of a marker (e.g. :func:`excursion_depths` of a range-of-motion
-        take). Without it the depth is fitted too, which the take's own data determine only
-        loosely (the lid is never seen beyond part-way closed): see ``docs/gap-filling.md``.
+        take). Without it the depth comes from ``depth_model``.
+    depth_model : {"geometry", "fit"}
+        A marker without a known depth: ``"geometry"`` (default) takes it from the eye's
+        geometry — the lower-lid marker the lid closes onto, or the palpebral fissure prior
+        (:func:`carapost.core.gapfill_lid.lid_closing_depth`); ``"fit"`` fits it to the pulse.
+    lid_marker_offset_mm, fissure_mm : float
+        The geometry's priors (:data:`~carapost.core.gapfill_lid.LID_MARKER_OFFSET_MM`,
+        :data:`~carapost.core.gapfill_lid.PALPEBRAL_FISSURE_MM`).
+    lid_points : collection of int, optional
+        Columns known to be upper-eyelid markers (e.g. by label). With ``depth_model=
+        "geometry"``, a marker without a lower-lid marker on its closing path takes the
+        fissure prior only if it is one of these; any other such marker keeps the neighbour
+        fill (a jaw or forehead gap that looks like a blink). Default: none.
 
     Returns
     -------
@@ -349,6 +401,8 @@ def fill_blink_gaps(xyz: np.ndarray, fill: np.ndarray, *, frame_rate: float, kno
         raise ValueError(f"frame_rate must be positive, got {frame_rate}")
     if not window_s > 0:
         raise ValueError(f"window_s must be positive, got {window_s}")
+    if depth_model not in ("geometry", "fit"):
+        raise ValueError(f"depth_model must be 'geometry' or 'fit', got {depth_model!r}")
     finite = np.isfinite(xyz).all(-1)
     known = finite & ~fill if known is None else np.asarray(known, dtype=bool) & finite & ~fill
     if base is None:
@@ -419,23 +473,36 @@ def fill_blink_gaps(xyz: np.ndarray, fill: np.ndarray, *, frame_rate: float, kno
         if not cand:
             continue
         blinks = [{"g0": c["g0"], "g1": c["g1"], "f": c["frames"][c["seen"]].astype(float),
-                   "s": c["r"][c["seen"]] @ v, "hidden": np.arange(c["g0"], c["g1"] + 1, dtype=float)} for c in cand]
+                   "s": c["r"][c["seen"]] @ v, "hidden": np.arange(c["g0"], c["g1"] + 1, dtype=float),
+                   "mid": 0.5 * (c["g0"] + c["g1"]), "half": max(1.0, 0.5 * (c["frames"][-1] - c["frames"][0]))}
+                  for c in cand]
         d = None if depths is None else depths.get(int(p))
+        source, partner = "given", -1
+        if (d is None or not np.isfinite(d)) and depth_model == "geometry":
+            geo = lid_closing_depth(xyz, known, int(p), v, ref, rank_cost=rank_cost, n_neighbours=n_neighbours,
+                                    blink_frames=np.concatenate([np.arange(c["g0"], c["g1"] + 1) for c in cand]),
+                                    marker_offset_mm=lid_marker_offset_mm, fissure_mm=fissure_mm)
+            d, source, partner = geo.depth_mm, geo.source, geo.partner
+            if source == "fissure_prior" and (lid_points is None or int(p) not in lid_points):
+                continue                              # not known to be a lid, and no lower lid in its way
+        elif d is None or not np.isfinite(d):
+            source = "fit"
         if d is not None and np.isfinite(d) and d < max(float(np.max(b["s"], initial=0.0)) for b in blinks):
             continue                                  # the known depth cannot explain what is seen
         res = _fit_point(blinks, frame_rate, None if d is None or not np.isfinite(d) else float(d))
         if res is None:
             continue
-        D, pulses, rms = res
+        D, pulses, rms, drifts = res
         ok = [r <= max(_MAX_RMS_MM, _MAX_RMS_FRACTION * D) for r in rms]
         if not any(ok):
             continue
-        fit = BlinkFit(int(p), v, D, rms_mm=float(np.sqrt(np.mean(np.square([r for r, k in zip(rms, ok) if k])))))
-        for c, b, x, k in zip(cand, blinks, pulses, ok):
+        fit = BlinkFit(int(p), v, D, rms_mm=float(np.sqrt(np.mean(np.square([r for r, k in zip(rms, ok) if k])))),
+                       depth_source=source, partner=partner)
+        for c, b, x, dr, k in zip(cand, blinks, pulses, drifts, ok):
             if not k:
                 continue                              # the pulse does not explain what was seen
             g = np.arange(c["g0"], c["g1"] + 1)
-            amp = D * blink_pulse(g, *x)
+            amp = D * blink_pulse(g, *x) + dr[0] + dr[1] * (g - b["mid"]) / b["half"]
             i = g - c["frames"][0]
             out[g, p] = c["base"][i] + amp[:, None] * np.einsum("nij,j->ni", c["rot"][i], v)
             fit.pulses.append((c["g0"], c["g1"], *map(float, x)))

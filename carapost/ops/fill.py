@@ -46,6 +46,7 @@ __all__ = [
     "evaluate_fill",
     "face_model_for",
     "blink_depths_for",
+    "upper_lid_columns",
     "stabilize_manual",
     "stabilize_assisted",
     "align_data",
@@ -125,6 +126,18 @@ def _point_name(take: Take, col: int) -> str:
     return take.points.name(int(col))
 
 
+def upper_lid_columns(take: Take) -> set[int]:
+    """Columns whose label names an eyelid marker (contains "lid", any case) and not a lower
+    one ("low"/"bot"/"inf"): the markers that may take the palpebral-fissure prior of
+    :mod:`carapost.core.gapfill_lid` when no lower-lid marker lies on their closing path."""
+    out = set()
+    for j, lab in enumerate(take.points.labels):
+        low = (lab or "").lower()
+        if "lid" in low and not any(w in low for w in ("low", "bot", "inf")):
+            out.add(j)
+    return out
+
+
 def _previously_filled(take: Take, frames: np.ndarray) -> np.ndarray:
     """Samples holding a position with fewer than two views behind it (F', P)."""
     xyz = take.xyz[frames]
@@ -161,7 +174,8 @@ def _single_rays(take: Take, frames: np.ndarray, mask: np.ndarray) -> tuple[np.n
 
 def _fill_arrays(take: Take, frames: np.ndarray, fill: np.ndarray, known: np.ndarray, method: str,
                  params: GapFillingParameters, model: FaceModel | None, n_neighbours: int,
-                 momentum_s: float, blink_depths: dict[int, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+                 momentum_s: float, blink_depths: dict[int, float] | None = None,
+                 blink_depth_model: str = "geometry") -> tuple[np.ndarray, np.ndarray]:
     """New positions (F', P, 3) and the filled mask for the samples in ``fill``."""
     if method not in METHODS:
         raise ValueError(f"unknown gap-filling method {method!r}; use one of {', '.join(METHODS)}")
@@ -183,7 +197,8 @@ def _fill_arrays(take: Take, frames: np.ndarray, fill: np.ndarray, known: np.nda
                         velocity_frames=velocity_frames)
         if method == "blink":
             res, _ = fill_blink_gaps(xyz, remaining, frame_rate=take.frame_rate, known=known & ~fill, base=res,
-                                     n_neighbours=n_neighbours, depths=blink_depths)
+                                     n_neighbours=n_neighbours, depths=blink_depths,
+                                     depth_model=blink_depth_model, lid_points=upper_lid_columns(take))
         out[res.filled] = res.xyz[res.filled]
         filled |= res.filled
     return out, filled
@@ -193,7 +208,8 @@ def _fill_arrays(take: Take, frames: np.ndarray, fill: np.ndarray, known: np.nda
 def interpolate_gaps(take: Take, points: Sequence[int] | None = None, *, method: str | None = None,
                      params: GapFillingParameters | None = None, face_model: FaceModel | None = None,
                      n_neighbours: int = 8, momentum_s: float = 0.0, rom: Take | None = None,
-                     blink_depths: dict[int, float] | None = None) -> ReportedChange:
+                     blink_depths: dict[int, float] | None = None,
+                     blink_depth_model: str = "geometry") -> ReportedChange:
     """"Interpolate Gaps": fill the gaps of the selected points (all if none) in the active range.
 
     Parameters
@@ -226,7 +242,12 @@ def interpolate_gaps(take: Take, points: Sequence[int] | None = None, *, method:
         ``face_model``): the model is learnt from it (:func:`face_model_for`).
     blink_depths : dict {point column: mm}, optional
         For ``method="blink"``: known depths instead (overrides ``rom``). Without either the
-        depth is fitted from the take, which determines it only loosely.
+        depth comes from the eye's geometry (``blink_depth_model="geometry"``: the lower-lid
+        marker the lid closes onto, or for a marker labelled as an upper lid without one the
+        palpebral-fissure prior, :mod:`carapost.core.gapfill_lid`) or is fitted to the pulse
+        (``"fit"``, which the take determines only loosely).
+    blink_depth_model : {"geometry", "fit"}
+        See ``blink_depths``.
 
     Returns
     -------
@@ -262,7 +283,7 @@ def interpolate_gaps(take: Take, points: Sequence[int] | None = None, *, method:
     if method == "face_model" and face_model is None and rom is not None:
         face_model = face_model_for(take, rom=rom)
     new, filled = _fill_arrays(take, frames, fill, known, method, params, face_model, n_neighbours, momentum_s,
-                               blink_depths)
+                               blink_depths, blink_depth_model)
     recon = take.recon[frames].copy()
     on_ray = np.zeros_like(filled)
     if params.allow_single_sensor_tracking_gap_filling and take.n_cameras:
@@ -371,7 +392,7 @@ def evaluate_fill(take: Take, method: str = "neighbours", *, hide_fraction: floa
                   points: Sequence[int] | None = None, params: GapFillingParameters | None = None,
                   face_model: FaceModel | None = None, n_neighbours: int = 8,
                   momentum_s: float = 0.0, rom: Take | None = None,
-                  blink_depths: dict[int, float] | None = None) -> FillEvaluation:
+                  blink_depths: dict[int, float] | None = None, blink_depth_model: str = "geometry") -> FillEvaluation:
     """Measure a gap-filling method: hide known samples, fill them, compare.
 
     Parameters
@@ -388,7 +409,7 @@ def evaluate_fill(take: Take, method: str = "neighbours", *, hide_fraction: floa
         of the eyelid markers; they must be known samples.
     points : point columns, optional
         Points whose samples may be hidden (default all).
-    params, face_model, n_neighbours, momentum_s, rom, blink_depths
+    params, face_model, n_neighbours, momentum_s, rom, blink_depths, blink_depth_model
         As for :func:`interpolate_gaps`. A face model is learnt *after* hiding (so the hidden
         samples do not inform it) unless one is given.
 
@@ -415,7 +436,7 @@ def evaluate_fill(take: Take, method: str = "neighbours", *, hide_fraction: floa
     if method == "blink" and blink_depths is None and rom is not None:
         blink_depths = blink_depths_for(take, rom)
     new, filled = _fill_arrays(take, frames, hidden, known, method, params, face_model, n_neighbours, momentum_s,
-                               blink_depths)
+                               blink_depths, blink_depth_model)
     err = np.linalg.norm(new[hidden] - xyz[hidden], axis=-1)
     err[~filled[hidden]] = np.nan
     return FillEvaluation(method, hidden, err)

@@ -226,7 +226,9 @@ def test_blink_method_fills_eyelid_gaps(blink_takes, undo_check):
         assert depths[int(m)] == pytest.approx(7.5, abs=0.2)      # the synthetic lid closes 7.5 mm
     M = len(tr.names)                                                  # the face markers (then 4 brim points)
     medians = {}
-    methods = {"neighbours": {}, "blink": {"method": "blink"}, "blink_rom": {"method": "blink", "rom": rom}}
+    methods = {"neighbours": {}, "blink": {"method": "blink"},
+               "blink_fit": {"method": "blink", "blink_depth_model": "fit"},
+               "blink_rom": {"method": "blink", "rom": rom}}
     for name, kw in methods.items():
         ch = interpolate_gaps(take, **kw)
         if name == "blink_rom":
@@ -247,7 +249,18 @@ def test_blink_method_fills_eyelid_gaps(blink_takes, undo_check):
     assert len(medians["neighbours"]) == 4                          # two blinks, two lids
     assert min(medians["neighbours"]) > 3.0                          # the guide's method misses the closure
     assert max(medians["blink_rom"]) <= 1.0, medians                 # issue 4's target, with a ROM depth
-    assert max(medians["blink"]) < min(medians["neighbours"]), medians
+    # no ROM, no lower-lid marker in the 35-marker set: the labelled upper lids take the
+    # palpebral-fissure prior (9.7 mm for the synthetic 7.5 mm: measured 1.0-1.5 mm per blink)
+    assert max(medians["blink"]) < 1.8 and max(medians["blink"]) < min(medians["neighbours"]) - 2.0, medians
+    assert max(medians["blink_fit"]) < min(medians["neighbours"]), medians   # measured 1.15-1.8 mm
+
+
+def test_upper_lid_columns_by_label():
+    from carapost.ops.fill import upper_lid_columns
+
+    take = Take.new([], 3, 60.0)
+    take.add_points(6, labels=["Lid_Upper_L", "LUpperLid", "Lid_Lower_L", "R_EYELID_INF", "Brow_L", ""])
+    assert upper_lid_columns(take) == {0, 1}
 
 
 def test_blink_method_leaves_ordinary_gaps_alone(c3d):
