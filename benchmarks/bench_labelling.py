@@ -23,6 +23,7 @@ Protocol
   right: "disputed" counts our wrong samples where the file's label breaks the file's own
   rigid shape around the reference frame and ours keeps it (see :func:`_disputed`);
   "accuracy_undisputed" leaves them out. The headline accuracy counts them as wrong.
+  "worst_markers" lists the three markers with most samples not given their name.
 * Swaps: pairs of neighbouring markers exchanged over 5-200 frames (synthetic) or 60 frames
   (real), repaired by :func:`~carapost.core.swaps.detect_swaps`; "false relabels" are repairs
   proposed on the same data without injected swaps.
@@ -130,13 +131,26 @@ def _disputed(pts, labels, truth, group, M, reference: int, tau: float = 3.0) ->
     return {"disputed": n_disp, "accuracy_undisputed": round(int(same.sum()) / max(n, 1), 6)}
 
 
-def _methods(pts, truth, h, M, skeleton=None, group=None, reference=None) -> dict:
+def _worst(labels, truth, group, names: list[str], n: int = 3) -> list:
+    """The ``n`` markers with the most samples not given their name: [name, samples]."""
+    is_m = truth >= 0
+    ok = is_m & (labels >= 0) & (group[np.maximum(labels, 0)] == group[np.maximum(truth, 0)])
+    bad = np.bincount(truth[is_m & ~ok], minlength=len(names))
+    return [[names[m], int(bad[m])] for m in np.argsort(-bad, kind="stable")[:n] if bad[m] > 0]
+
+
+def _methods(pts, truth, h, M, skeleton=None, group=None, reference=None, names=None) -> dict:
     out = {}
     r, dt = _timed(lambda: label_assignment(pts, h, M))
     out["assignment"] = {**_score(r.labels, truth, group), "fps": round(len(pts) / dt),
-                         "rigid_renamed": r.report.get("rigid_renamed", 0), "shape_repairs": r.report.get("shape_repairs", 0)}
+                         "rigid_renamed": r.report.get("rigid_renamed", 0),
+                         "shape_repairs": r.report.get("shape_repairs", 0),
+                         "impossible_unnamed": r.report.get("impossible_unnamed", 0),
+                         "unseen_named": r.report.get("unseen_named", 0)}
     if reference is not None:
         out["assignment"].update(_disputed(pts, r.labels, truth, group, M, reference))
+    if names is not None and group is not None:
+        out["assignment"]["worst_markers"] = _worst(r.labels, truth, group, names)
     r, dt = _timed(lambda: label_nearest(pts, h, M, skeleton=skeleton))
     out["nearest"] = {**_score(r.labels, truth, group), "fps": round(len(pts) / dt)}
     return out
@@ -208,7 +222,7 @@ def real(root: Path) -> tuple[list, list]:
         file_swaps = len(detect_swaps(x).relabels)
         rows.append({"file": rel, "markers": M, "unlabelled_columns": int((~named).sum()), "frames": len(x),
                      "rate": d.frame_rate, "reference_frame": f0, "file_swaps": file_swaps,
-                     **_methods(pts, truth, h, M, group=group, reference=f0)})
+                     **_methods(pts, truth, h, M, group=group, reference=f0, names=names)})
         if file_swaps == 0 and M > 3:  # inject swaps into files that have none of their own
             rng = np.random.default_rng(3)
             y = x.copy()

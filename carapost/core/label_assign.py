@@ -29,6 +29,8 @@
 6. Optionally (default) the shape check (:mod:`carapost.core.label_shape`) re-identifies
    markers against the rigid shape around the reference frame: it undoes confusions that
    continuity alone never undoes (fast motion, a source's own inconsistent labels).
+7. Optionally (default) the isolated check (:mod:`carapost.core.label_isolated`) unnames
+   pieces no neighbourhood allows, and names the one marker never labelled by elimination.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from .labelling import LabelResult, ProgressFn, check_hints, check_points
 
 if TYPE_CHECKING:
     from .label_rigid import RigidGroups
+    from .label_shape import ShapeModel
 
 __all__ = ["AssignmentParams", "AssignmentEngine", "label_assignment", "kabsch", "motion_scales"]
 
@@ -53,7 +56,8 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
                      template: np.ndarray | None = None, ignore: Sequence[int] = (),
                      params: AssignmentParams | None = None, ratio: float = 0.5, passes: int = 2,
                      repair_swaps: bool = True, rigid_check: bool = True, shape_check: bool = True,
-                     shape_tolerance: float = 0.5, progress: ProgressFn | None = None) -> LabelResult:
+                     isolated_check: bool = True, shape_tolerance: float = 0.5,
+                     progress: ProgressFn | None = None) -> LabelResult:
     """Label unlabelled point clouds (the default method).
 
     Parameters
@@ -86,6 +90,12 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
         repaired something (and ``repair_swaps``), run the swap repair again, keeping the
         repairs that lower the shape cost or raise it by at most ``shape_tolerance`` per frame
         and marker moved, and then, if that changed anything, the shape check once more.
+        No repair is kept that the pairs rigid over the whole take contradict.
+    isolated_check : bool
+        Then unname pieces of tracklets whose label's neighbourhood rules them out
+        (:func:`~carapost.core.label_isolated.impossible_pieces`), and give the one marker
+        never labelled the isolated unlabelled tracklets
+        (:func:`~carapost.core.label_isolated.name_unseen`).
     progress : callable, optional
         ``progress(done, total)`` over the events; returning False stops early (the labels
         found so far are returned).
@@ -95,7 +105,8 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
     LabelResult
         ``report``: ``reference_frame``, ``tracklets``, ``events``, ``unlabelled_points``,
         ``link_residual_mm`` (median, p90), ``swaps_repaired``, ``rigid_renamed``,
-        ``shape_repairs``, ``conflicts``.
+        ``shape_repairs``, ``impossible_unnamed`` (points), ``unseen_named`` (tracklets),
+        ``conflicts``.
 
     Raises
     ------
@@ -175,13 +186,17 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
             labels = relabel_points(labels, keep)
             report["swaps_repaired"] = len(keep)
     groups = None
+    model = None
     if rigid_check:
         labels, groups, rrep = _rigid_check(pts, labels, tracks, h, n_markers, t0, ign)
         report["rigid_renamed"] = rrep["pieces_renamed"]
     if shape_check:
-        labels, n_shape = _shape_check(pts, labels, tracks, h, n_markers, t0, ign,
-                                       shape_tolerance if repair_swaps else None, groups)
+        labels, n_shape, model = _shape_check(pts, labels, tracks, h, n_markers, t0, ign,
+                                              shape_tolerance if repair_swaps else None, groups)
         report["shape_repairs"] = n_shape
+    if isolated_check:
+        labels, report["impossible_unnamed"], report["unseen_named"] = _isolated_check(
+            pts, labels, tracks, h, n_markers, t0, ign, model)
     report["unlabelled_points"] = int((valid & (labels < 0)).sum())
     return LabelResult(labels, report)
 
@@ -224,7 +239,8 @@ def _trusted_frames(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, n_ma
 
 def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: np.ndarray, n_markers: int,
                  t0: int, ign: np.ndarray, tolerance: float | None,
-                 groups: RigidGroups | None = None) -> tuple[np.ndarray, int]:
+                 groups: RigidGroups | None = None,
+                 take_veto: float = 1.0) -> tuple[np.ndarray, int, ShapeModel]:
     """Re-identify against the shape around frame ``t0``, then repair swaps by continuity again.
 
     :func:`~carapost.core.label_shape.shape_relabels` repairs the labels that contradict the
@@ -235,10 +251,16 @@ def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: 
     repaired something, the shape check runs once more; then once with runs of single frames
     (short confusions during fast motion). No repair moves a hinted point, nor
     (with the rigid ``groups``) permutes markers of one rigid group that its other members
-    cannot check (:func:`~carapost.core.label_rigid.keeps_rigid_groups`). Returns the labels
-    and the number of repairs applied.
+    cannot check (:func:`~carapost.core.label_rigid.keeps_rigid_groups`), nor one that the
+    pairs rigid over the whole take contradict: among 12 candidate partners of each marker,
+    the (up to 6) pairs that keep their distance in at least half of the take along the
+    reference frame's own tracklets (:func:`~carapost.core.label_shape.rigid_over_take`; a
+    label-free measure) must not lose more than ``take_veto`` of shape gain per frame and
+    marker moved (near the reference frame a resting arm makes an upper-arm and a forearm
+    marker look rigid). Returns the labels, the number of repairs applied and the shape model
+    (6 partners per marker, from the labels before the repairs).
     """
-    from .label_shape import reference_model, relabel_gain, shape_relabels
+    from .label_shape import reference_model, relabel_gain, rigid_over_take, shape_relabels
     from .swaps import apply_relabel, detect_swaps, relabel_points
     F = pts.shape[0]
     xyz = np.full((F, n_markers, 3), np.nan)
@@ -247,7 +269,12 @@ def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: 
     xyz[f, labels[f, j]] = pts[f, j]
     pieces[f, labels[f, j]] = tracks.tid[f, j]
     fixed = np.flatnonzero(ign)
-    model = reference_model(xyz, t0, pieces=pieces)
+    wide = reference_model(xyz, t0, pieces=pieces, k=12)
+    model = _first_partners(wide, 6)  # the same as reference_model(..., k=6)
+    # the pairs rigid over the whole take, measured along the reference frame's own tracklets
+    # (label-free): a repair they contradict is refused
+    on_ref = (pieces == pieces[t0][None]) & (pieces >= 0)
+    take_model = rigid_over_take(wide, np.where(on_ref[..., None], xyz, np.nan), k=6)
     hinted_frames = np.flatnonzero((hints >= 0).any(1))
 
     def moves_hint(r) -> bool:
@@ -257,16 +284,18 @@ def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: 
     from .label_rigid import keeps_rigid_groups
 
     def rigid_ok(x: np.ndarray, r, gain: float) -> bool:
-        return keeps_rigid_groups(x, r, groups)
+        if groups is not None and len(groups) and not keeps_rigid_groups(x, r, groups):
+            return False
+        return relabel_gain(x, take_model, r) >= -take_veto
 
-    accept = rigid_ok if groups is not None and len(groups) else None
+    accept = rigid_ok
 
-    keep = [r for r in shape_relabels(xyz, t0, pieces=pieces, fixed=fixed, model=model, accept=accept)
-            if not moves_hint(r)]
+    keep = [r for r in shape_relabels(xyz, t0, pieces=pieces, fixed=fixed, model=model, accept=accept,
+                                      propagate=True) if not moves_hint(r)]
     if not keep:
-        return labels, 0
+        return labels, 0, model
     if tolerance is None:
-        return relabel_points(labels, keep), len(keep)
+        return relabel_points(labels, keep), len(keep), model
     xyz = apply_relabel(xyz, keep)
     n0 = len(keep)
     for r in detect_swaps(xyz, fixed=fixed, reference_frame=t0).relabels:
@@ -277,7 +306,8 @@ def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: 
             xyz = apply_relabel(xyz, [r])
             keep.append(r)
     if len(keep) > n0:
-        more = shape_relabels(xyz, t0, pieces=apply_relabel(pieces, keep), fixed=fixed, model=model, accept=accept)
+        more = shape_relabels(xyz, t0, pieces=apply_relabel(pieces, keep), fixed=fixed, model=model, accept=accept,
+                              propagate=True)
         more = [r for r in more if not moves_hint(r)]
         xyz = apply_relabel(xyz, more)
         keep += more
@@ -285,7 +315,37 @@ def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: 
     # frame-exact runs, every frame, the same gain test, two rounds
     short = shape_relabels(xyz, t0, fixed=fixed, model=model, accept=accept, stride=1, min_run=1, iterations=2)
     keep += [r for r in short if not moves_hint(r)]
-    return relabel_points(labels, keep), len(keep)
+    return relabel_points(labels, keep), len(keep), model
+
+
+def _first_partners(model: ShapeModel, k: int) -> ShapeModel:
+    """The model with each marker's ``k`` most rigid partners only."""
+    from .label_shape import ShapeModel
+    return ShapeModel(model.partners[:, :k], model.dist[:, :k], model.spread[:, :k])
+
+
+def _isolated_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: np.ndarray, n_markers: int,
+                    t0: int, ign: np.ndarray, model: ShapeModel | None = None) -> tuple[np.ndarray, int, int]:
+    """Unname pieces their label's shape rules out (the shape ``model`` around ``t0``, by
+    default made here), then give the one marker never labelled the isolated unlabelled
+    tracklets (:mod:`carapost.core.label_isolated`). Returns the labels, the points unnamed
+    and the tracklets named."""
+    from .label_isolated import impossible_pieces, name_unseen
+    from .label_shape import reference_model
+    if model is None:
+        F = pts.shape[0]
+        xyz = np.full((F, n_markers, 3), np.nan)
+        pieces = np.full((F, n_markers), -1, np.int64)
+        f, j = np.nonzero(labels >= 0)
+        xyz[f, labels[f, j]] = pts[f, j]
+        pieces[f, labels[f, j]] = tracks.tid[f, j]
+        xyz[:, ign] = np.nan
+        model = reference_model(xyz, t0, pieces=pieces)
+    bad = impossible_pieces(pts, labels, tracks.tid, model, protected=hints >= 0)
+    bad &= ~ign[np.maximum(labels, 0)]
+    labels = np.where(bad, -1, labels).astype(np.int32)
+    labels, n = name_unseen(pts, labels, tracks.tid, n_markers, t0, ignore=ign)
+    return labels, int(bad.sum()), n
 
 
 def _split_conflicting_hints(points: np.ndarray, links: np.ndarray, tracks: Tracklets,

@@ -22,6 +22,8 @@ frame:
    involved stay on the same tracklets (``pieces``: labels only change where tracklets start),
    trimmed to the sub-range of largest total gain, and kept when the take's total shape cost
    over the range drops clearly (``min_gain`` per frame and marker moved, in most frames).
+   Optionally (``propagate``) a kept repair's permutation is tried on the tracklet segments
+   next to it, and so on.
 
 :func:`shape_relabels` returns the repairs as :class:`~carapost.core.swaps.Relabel` objects
 (apply them with :func:`~carapost.core.swaps.apply_relabel` or
@@ -38,7 +40,8 @@ from scipy.optimize import linear_sum_assignment
 
 from .swaps import Relabel, _group, apply_relabel
 
-__all__ = ["ShapeModel", "shape_model", "shape_costs", "shape_relabels", "reference_model", "relabel_gain"]
+__all__ = ["ShapeModel", "shape_model", "shape_costs", "shape_relabels", "reference_model", "relabel_gain",
+           "take_rigidity", "rigid_over_take"]
 
 
 @dataclass(frozen=True)
@@ -292,6 +295,23 @@ def _trusted_spans(x: np.ndarray, pieces: np.ndarray | None, t0: int, window: in
     return np.maximum(lo, 0), np.minimum(hi, F - 1)
 
 
+def _neighbour_segments(pieces: np.ndarray, r: Relabel, F: int, t0: int) -> list[tuple[int, int]]:
+    """The frame ranges just before and just after ``r`` over which the points of its markers
+    stay on the same pieces, never over frame ``t0``."""
+    out = []
+    if r.end < F:
+        s, e = _snap(pieces, Relabel(r.end, r.end + 1, r.perm), F)
+        s = r.end
+        if not (s <= t0 < e):
+            out.append((s, e))
+    if r.start > 0:
+        s, e = _snap(pieces, Relabel(r.start - 1, r.start, r.perm), F)
+        e = r.start
+        if not (s <= t0 < e):
+            out.append((s, e))
+    return out
+
+
 def _snap(pieces: np.ndarray | None, r: Relabel, F: int) -> tuple[int, int]:
     """Extend ``r``'s frame range while the points of its markers stay on the same pieces."""
     s, e = r.start, r.end
@@ -315,7 +335,8 @@ def shape_relabels(xyz: np.ndarray, reference_frame: int, *, pieces: np.ndarray 
                    stride: int = 2, to_missing: bool = False,
                    fixed: Sequence[int] = (), iterations: int = 3,
                    model: ShapeModel | None = None,
-                   accept: Callable[[np.ndarray, Relabel, float], bool] | None = None) -> list[Relabel]:
+                   accept: Callable[[np.ndarray, Relabel, float], bool] | None = None,
+                   propagate: bool = False) -> list[Relabel]:
     """Label permutations that make the take consistent with its shape near a trusted frame.
 
     Parameters
@@ -363,6 +384,12 @@ def shape_relabels(xyz: np.ndarray, reference_frame: int, *, pieces: np.ndarray 
         ``accept(xyz, relabel, gain)``: a further condition on a repair that passed the gain
         test (``xyz`` the trajectories before it, ``gain`` its shape gain per frame and marker
         moved), e.g. that it does not break a rigid group.
+    propagate : bool
+        With ``pieces``: after each round, try every repair's permutation on the segments
+        next to it (the frames over which its markers' points stay on the same pieces, at
+        least ``min_run``), with the same tests, and so on from each one kept: a confusion
+        that continuity carried on over many tracklets, where the proposals of some segments
+        are muddled by other markers (Facial-Sing's mouth markers).
 
     Returns
     -------
@@ -427,6 +454,26 @@ def shape_relabels(xyz: np.ndarray, reference_frame: int, *, pieces: np.ndarray 
             out.append(Relabel(c.start, c.end, c.perm, float(g_n)))
             done.append(c)
             accepted += 1
+        if propagate and pc is not None:
+            # a confusion carried on by continuity spans several tracklet segments: try each
+            # repair's permutation on the segments next to it (at least ``min_run`` frames),
+            # with the same tests, as far as they pass
+            frontier = list(done)
+            while frontier:
+                r = frontier.pop()
+                for s, e in _neighbour_segments(pc, r, F, t0):
+                    if e - s < max(1, min_run):
+                        continue
+                    c = Relabel(s, e, r.perm)
+                    n = (e - s) * len(c.markers)
+                    g, sup = _gain(x, model, c, tau)
+                    if g / n < min_gain or sup < support or (accept is not None and not accept(x, c, g / n)):
+                        continue
+                    x = apply_relabel(x, [c])
+                    pc = apply_relabel(pc, [c])
+                    out.append(Relabel(s, e, c.perm, float(g / n)))
+                    frontier.append(c)
+                    accepted += 1
         if not accepted:
             break
     return out
@@ -443,6 +490,55 @@ def reference_model(xyz: np.ndarray, reference_frame: int, *, pieces: np.ndarray
     fr = np.unique(np.linspace(a, b - 1, min(b - a, 120)).astype(int))
     tr = (fr[:, None] >= lo[None]) & (fr[:, None] <= hi[None])
     return shape_model(x, fr, trusted=tr, k=k)
+
+
+def take_rigidity(model: ShapeModel, xyz: np.ndarray, *, factor: float = 2.0, samples: int = 400,
+                  min_samples: int = 20) -> np.ndarray:
+    """How rigid each pair of the model is over the whole take: the share of ``samples``
+    frames spread over the take (where both markers are labelled) in which the pair's
+    distance is within ``factor`` spreads of the model's distance ``D``. (M, K), NaN where the
+    pair is seen together in fewer than ``min_samples`` sampled frames.
+
+    Near the reference frame a pair may look rigid because the body barely moves there (a
+    scapula and a forearm marker while the athlete sits still): over the take, such a pair
+    keeps its distance in few frames. A share, not a spread, because the labels over the take
+    are the ones being checked (a rigid pair with a third of its samples mislabelled still
+    keeps its distance in two thirds of them).
+
+    Parameters
+    ----------
+    model : ShapeModel
+        Partners (M, K), distances and spreads near the reference frame.
+    xyz : float (F, M, 3)
+        Labelled trajectories, mm, NaN gaps.
+    """
+    x = np.asarray(xyz, np.float64)
+    F = x.shape[0]
+    fr = np.unique(np.linspace(0, F - 1, min(F, samples)).astype(int))
+    X = x[fr]
+    P = np.maximum(model.partners, 0)
+    d = np.linalg.norm(X[:, :, None, :] - X[:, P], axis=-1)  # (S, M, K)
+    dev = np.abs(d - model.dist[None])
+    seen = np.isfinite(dev)
+    n = seen.sum(0)
+    within = (seen & (dev <= factor * model.spread[None])).sum(0)
+    return np.where((model.partners >= 0) & (n >= min_samples), within / np.maximum(n, 1), np.nan)
+
+
+def rigid_over_take(model: ShapeModel, xyz: np.ndarray, *, min_share: float = 0.5, k: int | None = None,
+                    **kw) -> ShapeModel:
+    """The model without the pairs that are not rigid over the whole take: those keeping their
+    distance in less than ``min_share`` of the take (:func:`take_rigidity`); pairs that
+    cannot be measured are kept. With ``k``, at most the ``k`` first partners left are kept
+    (give a model with more candidates than needed)."""
+    share = take_rigidity(model, xyz, **kw)
+    keep = (model.partners >= 0) & (np.nan_to_num(share, nan=1.0) >= min_share)
+    K = model.partners.shape[1] if k is None else min(k, model.partners.shape[1])
+    order = np.argsort(~keep, axis=1, kind="stable")[:, :K]  # kept partners first, in their order
+    ok = np.take_along_axis(keep, order, 1)
+    return ShapeModel(np.where(ok, np.take_along_axis(model.partners, order, 1), -1),
+                      np.where(ok, np.take_along_axis(model.dist, order, 1), np.nan),
+                      np.where(ok, np.take_along_axis(model.spread, order, 1), np.inf))
 
 
 def relabel_gain(xyz: np.ndarray, model: ShapeModel, relabel: Relabel, *, tau: float = 3.0) -> float:
