@@ -15,9 +15,8 @@ cameras (``coverage_detected``) and of those detected by both cameras of a caddy
 marker detection at all: with the detector, a pupil seen by three cameras), duplicates, median
 3D error in the brim frame and after a rigid alignment (shape), and time per frame.
 
-Then the Pose2Sim demo (real footage, white body markers, Qualisys calibration): frame 0
-auto-initialized; points reconstructed, points on the person (near Pose2Sim's markerless
-skeleton) and median reprojection error, with and without bundling the poses.
+The real footage (the Pose2Sim demo's frame 0, auto-initialized) has its own benchmark,
+``bench_pose2sim.py``.
 
 Prints one JSON line.
 """
@@ -90,54 +89,13 @@ def synthetic(n: int, frames: list[int], seeds: list[int], detector: bool) -> di
     return out
 
 
-def pose2sim() -> dict:
-    from conftest import real_data_dir
-    from pose2sim_case import P2S_BLOBS, P2S_INIT, auto_kwargs, on_body, skeleton_points
-
-    from carapost.core.blobs import detect_blobs
-    from carapost.io.calibration import load_calibration
-    from carapost.io.sources import open_source
-    from carapost.model.params import BlobParameters
-
-    base = real_data_dir()
-    if base is None or not (base / "pose2sim-demo").is_dir():
-        return {"skipped": "real data not found"}
-    root = base / "pose2sim-demo"
-    cal = load_calibration(root / "calibration" / "Calib.qca.txt")
-    R, t = cal.poses(1)
-    t0 = time.perf_counter()
-    dets = [detect_blobs(open_source(root / "videos" / f"{name}.mp4").read(0), BlobParameters(**P2S_BLOBS))
-            for name in cal.names]
-    t_detect = time.perf_counter() - t0
-    skel = skeleton_points(root)
-    out = {"detections": [len(d["x"]) for d in dets], "detect_s": round(t_detect, 2),
-           "distortion_fit_max_px": [round(float(c.extra["distortion_fit"]["max_residual_px"]), 2)
-                                     for c in cal.cameras]}
-    for bundle in (False, True):
-        res, dt = _timed(lambda: auto_initialize(dets, cal.intrinsics, R[0], t[0], P2S_INIT, **auto_kwargs(bundle)))
-        r = res.residuals[np.isfinite(res.residuals)]
-        body = on_body(res.xyz, skel)
-        rb = res.residuals[body]
-        rb = rb[np.isfinite(rb)]
-        out["bundled" if bundle else "unbundled"] = {
-            "points": res.n_points, "views": np.bincount(res.n_views, minlength=5)[2:].tolist(),
-            "on_person": int(body.sum()),
-            "median_reprojection_px": round(float(np.median(r)), 3) if len(r) else None,
-            "median_reprojection_on_person_px": round(float(np.median(rb)), 3) if len(rb) else None,
-            "s": round(dt, 2)}
-    return out
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, nargs="+", default=[0, 50, 99])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--no-detector", action="store_true", help="skip the rendered-image cases")
-    ap.add_argument("--no-real", action="store_true", help="skip the Pose2Sim demo")
     args = ap.parse_args()
     result = {str(n): synthetic(n, args.frames, args.seeds, not args.no_detector) for n in (35, 80, 156)}
-    if not args.no_real:
-        result["pose2sim_frame0"] = pose2sim()
     emit("init3d", **result)
 
 
