@@ -126,6 +126,27 @@ def test_label_command_repairs_a_swap(capsys, tmp_path):
     np.testing.assert_allclose(back.xyz[:, order], xyz, atol=1e-3)
 
 
+def test_label_command_isolated_check_switch(capsys, tmp_path):
+    import json
+
+    import numpy as np
+
+    from carapost.io.marker_csv import write_marker_csv
+
+    rng = np.random.default_rng(1)
+    xyz = rng.uniform(-60, 60, (1, 8, 3)) + rng.normal(0, 0.05, (90, 8, 3))
+    src = tmp_path / "in.csv"
+    write_marker_csv(src, [f"M{i}" for i in range(8)], xyz, frame_rate=60.0)
+    reports = {}
+    for flag in ((), ("--no-isolated-check",)):
+        code, out, err = run(capsys, "label", str(src), str(tmp_path / "out.csv"), "--no-progress", "--json", *flag)
+        assert code == 0, err
+        assert "labelled_samples: 720" in out
+        reports[flag] = json.loads(out.strip().splitlines()[-1])
+    assert reports[()]["labeller"]["unseen_named"] == 0
+    assert "unseen_named" not in reports[("--no-isolated-check",)]["labeller"]
+
+
 def test_ctrl_c_cancels_then_interrupts(capsys):
     import os
     import signal

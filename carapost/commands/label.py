@@ -20,14 +20,20 @@ def cmd_label(args: argparse.Namespace) -> dict[str, Any]:
         report = label_file(args.input, args.output, method=args.method, template=args.template, progress=prog,
                             reference_frame=args.reference_frame, ignore_markers=args.ignore or (),
                             hand_heuristics=args.hand_heuristics, plot_every=args.plot_every,
-                            plot_dir=args.plot_dir, units=args.units)
+                            plot_dir=args.plot_dir, units=args.units,
+                            options=None if args.isolated_check or args.method != "assignment"
+                            else {"isolated_check": False})
     dt = time.perf_counter() - t0
     report = dict(report)
     report["seconds"] = dt
     print(f"carapost label: wrote {args.output} ({args.method}) in {dt:.1f} s")
-    for key in ("markers", "frames", "labelled_fraction", "swaps_repaired", "relabelled"):
+    for key in ("markers", "frames", "labelled_samples", "unlabelled_points", "relabelled_samples"):
         if key in report:
             print(f"  {key}: {report[key]}")
+    named = report.get("labeller", {}).get("unseen_named", 0)
+    if named:
+        print(f"  note: {named} isolated tracklet(s) took the name of the one marker never seen in the reference "
+              "frame (check them, or run with --no-isolated-check)")
     return report
 
 
@@ -43,5 +49,8 @@ def add_parsers(sub: Any) -> dict[str, Any]:
     p.add_argument("--hand-heuristics", action="store_true", help="crossing-bone and fingertip rules (hand names)")
     p.add_argument("--plot-every", type=int, default=0, help="save an inspection plot every N frames")
     p.add_argument("--plot-dir", type=Path, help="folder for the inspection plots")
+    p.add_argument("--no-isolated-check", dest="isolated_check", action="store_false",
+                   help="(assignment) do not unname pieces their neighbours rule out, nor give the one marker never "
+                        "seen in the reference frame to isolated unlabelled tracklets")
     p.add_argument("--units", choices=("mm", "cm", "m"), help="CSV input units (default mm)")
     return {"label": cmd_label}
