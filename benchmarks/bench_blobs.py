@@ -23,7 +23,10 @@ reported separately (``partial``: how many such dots get a detection more than 1
 their true centre). ``faint_dots`` counts the dots to find that change the noise-free image by
 less than ``FAINT_CONTRAST`` grey levels (a white dot on clipped skin, a black dot in a black
 mouth); they count in ``recall``, and ``recall_not_faint`` is the recall without them. Time is CPU time of the calling thread per frame and polarity with OpenCV
-limited to one thread (``per_core_ms``, median over frames).
+limited to one thread and BLAS single-threaded (``per_core_ms``, median over frames;
+``time_ratio``: our median over OpenCV's; ``time_ratio_per_image``: the median of the
+per-image ratios). Both run in the same process on each image in turn (alternating which
+goes first).
 
 Prints one JSON line. ``python benchmarks/bench_blobs.py [--seeds 2] [--frames 10]``
 """
@@ -33,8 +36,13 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import os
 import sys
 import time
+
+# Single-threaded BLAS (set before numpy loads it): CPU time per image is then comparable.
+for _v in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_v, "1")
 from collections import defaultdict
 from pathlib import Path
 
@@ -300,19 +308,31 @@ def main() -> None:
     cases = synth_cases([args.seed + k for k in range(args.seeds)], cameras=tuple(range(args.cameras)))
     cases += rendered_cases(args.frames, args.seed)
     setting = tune_sbd(tuning)
-    ours, t_ours = run_ours(cases)
-    sbd, t_sbd = run_sbd(cases, setting)
+    # Interleaved per image (alternating which goes first), so that the load of a shared
+    # machine and warm caches fall on both detectors alike.
+    ours, t_ours, sbd, t_sbd = [], [], [], []
+    for i, case in enumerate(cases):
+        for which in ((0, 1) if i % 2 == 0 else (1, 0)):
+            if which == 0:
+                d, t = run_ours([case])
+                ours += d
+                t_ours += t
+            else:
+                d, t = run_sbd([case], setting)
+                sbd += d
+                t_sbd += t
     m_ours = [match_case(c, *d) for c, d in zip(cases, ours)]
     m_sbd = [match_case(c, *d) for c, d in zip(cases, sbd)]
     result = {"benchmark": "blobs", "image": "1280x720", "match_radius_px": MATCH_RADIUS,
               "radius_range_px": [R_MIN, R_MAX],
               "sbd_setting": dict(zip(("minThreshold", "thresholdStep", "minCircularity", "minInertiaRatio"), setting))}
     for name, idx in groups(cases).items():
+        mo, ms = float(np.median([t_ours[i] for i in idx])), float(np.median([t_sbd[i] for i in idx]))
         result[name] = {
-            "ours": {**summarise([m_ours[i] for i in idx]),
-                     "per_core_ms": round(1e3 * float(np.median([t_ours[i] for i in idx])), 1)},
-            "opencv_sbd": {**summarise([m_sbd[i] for i in idx]),
-                           "per_core_ms": round(1e3 * float(np.median([t_sbd[i] for i in idx])), 1)},
+            "ours": {**summarise([m_ours[i] for i in idx]), "per_core_ms": round(1e3 * mo, 1)},
+            "opencv_sbd": {**summarise([m_sbd[i] for i in idx]), "per_core_ms": round(1e3 * ms, 1)},
+            "time_ratio": round(mo / max(ms, 1e-9), 2),
+            "time_ratio_per_image": round(float(np.median([t_ours[i] / max(t_sbd[i], 1e-9) for i in idx])), 2),
         }
     print(json.dumps(result))
 

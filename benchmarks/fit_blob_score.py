@@ -20,6 +20,13 @@ times from different fixed random starts (the classifier averages their logits);
 iteratively reweighted least squares over every candidate (positive: within
 ``max(1.5, r/2)`` of a visible dot).
 
+The **gate** (the cheap pre-score after the level search, :func:`fit_gate`) is fitted too: a
+small network on :data:`carapost.core.blob_score.GATE_FEATURES` of every candidate with an
+isolated core (collected with the gate off) predicting whether the classifier gives it more
+than ``GATE_TARGET``, with the highest threshold that drops at most ``GATE_LOSS`` of the
+held-out candidates above ``GATE_KEEP``. ``--gate-only`` refits only the gate for the
+classifier in the repository.
+
 Writes ``carapost/resources/blob_classifier.json`` (``--out`` to write elsewhere, ``--dry`` not
 at all) and prints one JSON line: held-out log-loss (new and current model), a reliability
 table (predicted vs observed frequency per decile) and the recall / precision of the held-out
@@ -56,6 +63,14 @@ PENALTY = 1e-4
 #: classifier averages their logits (an ensemble: less variance than any one of them).
 MEMBERS = 3
 MIN_RADIUS, MAX_RADIUS = 1.5, 14.0
+#: The gate (:func:`fit_gate`): a network of ``GATE_HIDDEN`` units predicting whether the
+#: classifier gives a candidate a probability above ``GATE_TARGET``; its threshold is the
+#: highest that gates out at most ``GATE_LOSS`` of the candidates the classifier puts above
+#: ``GATE_KEEP`` (on the held-out images).
+GATE_HIDDEN = 8
+GATE_TARGET = 0.05
+GATE_KEEP = 0.2
+GATE_LOSS = 0.001
 
 
 def random_config(rng: np.random.Generator) -> RenderConfig:
@@ -136,9 +151,11 @@ def rendered_images(n_frames: int, seed: int):
 
 
 def collect(n_synth: int, n_frames: int, seed: int) -> dict[str, np.ndarray]:
-    """Measurements (``m_*``), labels and centre errors of fitted candidates, and (log_snr,
-    label) of all candidates, over ``n_synth`` synthetic-take images and ``n_frames``
-    rendered frames."""
+    """Measurements (``m_*``), labels and centre errors of fitted candidates, (log_snr,
+    label) of all candidates, and the gate's rows (``g_G`` gate features, ``g_X`` classifier
+    features, ``g_scored`` not rejected by the fit) of every candidate with an isolated core,
+    over ``n_synth`` synthetic-take images and ``n_frames`` rendered frames (the detector
+    runs with its gate off)."""
     from scipy.spatial import cKDTree
 
     def sources():
@@ -152,7 +169,14 @@ def collect(n_synth: int, n_frames: int, seed: int) -> dict[str, np.ndarray]:
         for pol in (-1, 1):
             if not (pol_all == pol).any():
                 continue
-            an = analyse_blobs(image, pol, min_radius=MIN_RADIUS, max_radius=MAX_RADIUS)
+            an = analyse_blobs(image, pol, min_radius=MIN_RADIUS, max_radius=MAX_RADIUS, gate=False)
+            # The gate's rows: candidates with an isolated core after their level search.
+            live = (an.gate_features[:, 0] == 1.0) & (an.measures["border"] == 0)
+            if live.any():
+                allf = blob_score.features(an.snr, {**an.measures, "polarity": np.full(len(an.snr), pol)})
+                meas.setdefault("gate_G", []).append(an.gate_features[live])
+                meas.setdefault("gate_X", []).append(allf[live])
+                meas.setdefault("gate_scored", []).append(an.score[live] > 0)
             must = must_all & (pol_all == pol)
             seen = seen_all & (pol_all == pol)
             sel = np.flatnonzero(an.ok)
@@ -186,7 +210,9 @@ def collect(n_synth: int, n_frames: int, seed: int) -> dict[str, np.ndarray]:
             yd.append(labd)
         print(f"image {k + 1}/{total}", file=sys.stderr, end="\r")
     print(file=sys.stderr)
-    return {**{f"m_{k}": np.concatenate(v) for k, v in meas.items()}, "y": np.concatenate(y), "err": np.concatenate(err),
+    gate = {f"g_{k[5:]}": np.concatenate(meas.pop(k)) for k in [k for k in meas if k.startswith("gate_")]}
+    return {**gate, **{f"m_{k}": np.concatenate(v) for k, v in meas.items()}, "y": np.concatenate(y),
+            "err": np.concatenate(err),
             "src": np.concatenate(src), "Xd": np.concatenate(Xd), "yd": np.concatenate(yd),
             "n_must": np.asarray([n for _, n in nmust]).sum(keepdims=True)}
 
@@ -251,6 +277,10 @@ def main() -> None:
     ap.add_argument("--penalty", type=float, default=PENALTY, help="weight penalty")
     ap.add_argument("--members", type=int, default=MEMBERS,
                     help="networks fitted from different random starts, averaged (logits)")
+    ap.add_argument("--gate-loss", type=float, default=GATE_LOSS,
+                    help="largest fraction of probable candidates the gate may drop (held out)")
+    ap.add_argument("--gate-only", action="store_true",
+                    help="keep the classifier, refit only the gate (targets: the current classifier)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     if args.reuse and args.cache and args.cache.exists():
@@ -263,6 +293,17 @@ def main() -> None:
         if args.cache:
             np.savez_compressed(args.cache, **{f"tr_{k}": v for k, v in tr.items()},
                                 **{f"va_{k}": v for k, v in va.items()})
+    if args.gate_only:
+        model = {k: v for k, v in blob_score.load_model().items() if not k.startswith("gate_")}
+        report = {"gate": fit_gate(tr, va, model, args.gate_loss)}
+        if not args.dry:
+            import json as _json
+            info = _json.loads(blob_score.MODEL_PATH.read_text()).get("info", {})
+            info["gate"] = {"command": " ".join(["python benchmarks/fit_blob_score.py"] + sys.argv[1:]),
+                            **{k: report["gate"][k] for k in ("threshold", "validation")}}
+            blob_score.save_model(args.out, model, info)
+        print(json.dumps(report))
+        return
     for d in (tr, va):
         m = {k[2:]: v for k, v in d.items() if k.startswith("m_")}
         d["X"] = blob_score.features(m["snr"], m)
@@ -290,11 +331,46 @@ def main() -> None:
                        "dense_log_loss": log_loss(pdv.astype(float), va["yd"]),
                        "dense_reliability": reliability(pdv.astype(float), va["yd"])},
     }
+    report["gate"] = fit_gate(tr, va, model, args.gate_loss)
     if not args.dry:
         info = {"command": " ".join(["python benchmarks/fit_blob_score.py"] + sys.argv[1:]),
-                "train": report["train"], "validation_log_loss": round(report["validation"]["log_loss"], 4)}
+                "train": report["train"], "validation_log_loss": round(report["validation"]["log_loss"], 4),
+                "gate": {k: report["gate"][k] for k in ("threshold", "validation")}}
         blob_score.save_model(args.out, model, info)
     print(json.dumps(report))
+
+
+def fit_gate(tr: dict, va: dict, model: dict, loss: float = GATE_LOSS) -> dict:
+    """Fit the gate (:func:`carapost.core.blob_score.gate_probability`) into ``model``
+    (``gate_*`` arrays and ``gate_threshold``) and return a report.
+
+    Its rows are the candidates with an isolated core after the level search; the target is
+    whether ``model`` gives the candidate a probability above :data:`GATE_TARGET` (0 for
+    those the fit rejects). The threshold is the highest (of a grid) at which at most
+    ``loss`` (:data:`GATE_LOSS`) of the held-out candidates with a probability above :data:`GATE_KEEP`
+    are gated out.
+    """
+    def target(d):
+        p = blob_score.network_probability(d["g_X"], model)
+        return np.where(d["g_scored"], p, 0.0)
+
+    pt, pv = target(tr), target(va)
+    net = fit_network(tr["g_G"], (pt > GATE_TARGET).astype(float), GATE_HIDDEN, PENALTY, seed=7)
+    gv = blob_score.network_probability(va["g_G"], net)
+    keep = pv > GATE_KEEP
+    best = 0.0
+    for t in np.concatenate([np.geomspace(1e-4, 0.05, 40), np.linspace(0.05, 0.5, 46)]):
+        if ((gv < t) & keep).sum() <= loss * keep.sum():
+            best = float(t)
+    for k, v in net.items():
+        model[f"gate_{k}"] = v
+    model["gate_threshold"] = np.asarray(best)
+    model["gate_keep"] = np.asarray(GATE_KEEP)
+    gated = gv < best
+    return {"threshold": round(best, 5), "train_rows": int(len(pt)),
+            "validation": {"rows": int(len(pv)), "gated_fraction": round(float(gated.mean()), 4),
+                           f"lost_above_{GATE_KEEP}": int((gated & keep).sum()), f"above_{GATE_KEEP}": int(keep.sum()),
+                           "lost_above_0.4": int((gated & (pv > 0.4)).sum()), "above_0.4": int((pv > 0.4).sum())}}
 
 
 def fit_network(X: np.ndarray, y: np.ndarray, hidden: int, penalty: float, seed: int = 0) -> dict:

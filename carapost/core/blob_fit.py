@@ -1,9 +1,13 @@
 """Per-candidate stage of the blob detector: level search, local background, ellipse, centre.
 
-All candidates of one group (same pyramid level and patch size) are processed together on a
-stack of square patches ``(N, S, S)``; nothing loops over candidates in Python. Morphology
-and connectivity run on a "mosaic" of the patches (stacked with blank rows between them) in
-single OpenCV calls.
+All candidates of one patch size (whatever pyramid level they come from) are processed
+together on a stack of square patches ``(N, S, S)`` (:func:`extract_patches`); nothing loops
+over candidates in Python. Morphology and connectivity run on a "mosaic" of the patches
+(stacked with blank rows between them) in single OpenCV calls. Steps 1-2 are
+:func:`search_levels` (its :class:`LevelSearch` is kept), steps 3-5 :func:`fit_outlines`, so
+that the detector can reject candidates after step 2 (the gate) and fit alternative outlines
+(a core forced to a higher level) without repeating steps 1-2; :func:`fit_patches` runs both
+on one image.
 
 For each candidate (signed image: the blob is bright):
 
@@ -38,13 +42,15 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .blob_patches import (K3, MONO, MONO_INDEX, SEP, Patches, box3, dilate, dilate_many, dot_rows,
+                           extract_patches, mosaic, patch_grid)
 from .blob_score import asymmetry, ellipse_distance, profile_rms, shape_residual
 
 __all__ = ["PatchFit", "fit_patches", "patch_half_size", "LEVELS"]
 
 #: Signed-image levels at or below / at or above which a pixel is black or clipped.
 _FLAT_LO, _FLAT_HI = 4, 251
-_SEP = 5  # blank rows between patches in a mosaic (> the largest dilation radius)
+_FLOOD_ROUND = 4  # flood steps between convergence checks
 #: Levels (fractions of the peak over the ring background) searched for the blob's core.
 LEVELS = (0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95)
 #: A level's component is a blob while its area is at least this fraction of its moment
@@ -63,8 +69,9 @@ _BAND = (2, 4)
 _MAX_SATURATED_RIM = 0.3
 #: Slope of the soft half-contrast region ``q = clip(RAMP (d/C - 1/2) + 1/2, 0, 1)``.
 _RAMP = 1.5
-#: Fixed-point scale of the flood levels (int16; the peak is ``_FP``).
-_FP = 1000
+#: Fixed-point scale of the flood levels (uint8, clipped at 255; the peak is ``_FP``: the
+#: searched levels are exact multiples of 10, and 8-bit morphology is the fastest).
+_FP = 200
 #: Trimmed moments: iterations, and the distance (px) beyond the moment ellipse from which
 #: the region is dropped.
 _TRIM_ITERS = 3
@@ -163,89 +170,6 @@ def patch_half_size(radius: np.ndarray | float) -> np.ndarray:
     return np.where(k < len(_HALF_SIZES), _HALF_SIZES[np.minimum(k, len(_HALF_SIZES) - 1)], need).astype(int)
 
 
-#: Largest ``M * P * k`` of one product in :func:`_dot` (OpenBLAS runs GEMMs up to 4 x 65536
-#: multiply-adds on the calling thread only).
-_DOT_CHUNK = 200_000
-
-
-def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a @ b`` for a tall ``a (M, P)`` and a thin ``b (P, k)``, in row blocks small enough
-    that a multi-threaded BLAS keeps each product on the calling thread: waking its threads
-    for these skinny products costs more CPU time than computing them, and competes with
-    :func:`carapost.core.detect_range.detect_frames`' own threads."""
-    m, p = a.shape
-    rows = max(1, _DOT_CHUNK // max(p * b.shape[1], 1))
-    if m <= rows:
-        return a @ b
-    out = np.empty((m, b.shape[1]), np.result_type(a, b))
-    for i in range(0, m, rows):
-        np.matmul(a[i:i + rows], b, out=out[i:i + rows])
-    return out
-
-
-def _mosaic(a: np.ndarray, fill: float = 0) -> np.ndarray:
-    """Stack ``(N, S, S)`` patches vertically with ``_SEP`` rows of ``fill`` between them."""
-    n, s, _ = a.shape
-    mos = np.full((n, s + _SEP, s), fill, a.dtype if a.dtype != bool else np.uint8)
-    mos[:, :s] = a
-    return mos.reshape(n * (s + _SEP), s)
-
-
-def _unmosaic(mos: np.ndarray, n: int, s: int) -> np.ndarray:
-    return mos.reshape(n, s + _SEP, s)[:, :s]
-
-
-_KERNELS = {r: cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)) for r in (1, 2, 3, 4)}
-_K3 = np.ones((3, 3), np.uint8)
-
-
-def _dilate(mask: np.ndarray, r: int) -> np.ndarray:
-    """Dilate each ``(S, S)`` mask of a stack by a disc of radius ``r`` (1..4) px."""
-    n, s, _ = mask.shape
-    if n == 0:
-        return mask.copy()
-    return _unmosaic(cv2.dilate(_mosaic(mask), _KERNELS[r]), n, s).astype(bool)
-
-
-def _box3(d: np.ndarray) -> np.ndarray:
-    """3x3 mean of each ``(S, S)`` float32 patch of a stack (edge values approximate)."""
-    n, s, _ = d.shape
-    if n == 0:
-        return d.copy()
-    out = cv2.blur(_mosaic(d), (3, 3), borderType=cv2.BORDER_CONSTANT)
-    return _unmosaic(out, n, s)
-
-
-_GRIDS: dict[int, tuple] = {}
-
-
-def _grid(half: int) -> tuple:
-    """Offsets ``dy, dx`` (int), their float32 copies, monomials and border mask (cached)."""
-    g = _GRIDS.get(half)
-    if g is None:
-        off = np.arange(-half, half + 1)
-        dy, dx = np.meshgrid(off, off, indexing="ij")
-        dxf, dyf = dx.astype(np.float32), dy.astype(np.float32)
-        edge = (np.abs(dx) == half) | (np.abs(dy) == half)
-        g = (dy, dx, dxf, dyf, _monomials(dxf, dyf), edge)
-        for a in g:
-            a.flags.writeable = False
-        _GRIDS[half] = g
-    return g
-
-
-#: Exponents (i, j) of the monomials; the first six are the quadratic basis 1, x, y, xx, xy, yy.
-_MONO = [(0, 0), (1, 0), (0, 1), (2, 0), (1, 1), (0, 2), (3, 0), (2, 1), (1, 2), (0, 3),
-         (4, 0), (3, 1), (2, 2), (1, 3), (0, 4)]
-_MONO_INDEX = {e: k for k, e in enumerate(_MONO)}
-
-
-def _monomials(dx: np.ndarray, dy: np.ndarray) -> np.ndarray:
-    """``(S*S, 15)`` float32: ``x^i y^j`` for ``i + j <= 4`` in the order of :data:`_MONO`."""
-    x, y = dx.ravel().astype(np.float64), dy.ravel().astype(np.float64)
-    return np.stack([x ** i * y ** j for i, j in _MONO], axis=1).astype(np.float32)
-
-
 def _plane_fit(p: np.ndarray, mask: np.ndarray, mono: np.ndarray,
                iters: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Robust least-squares plane per patch.
@@ -273,8 +197,8 @@ def _plane_fit(p: np.ndarray, mask: np.ndarray, mono: np.ndarray,
         Coefficients of ``1, x, y``.
     """
     n, s, _ = p.shape
-    terms = _MONO[:3]
-    pairs = np.asarray([[_MONO_INDEX[(a[0] + b[0], a[1] + b[1])] for b in terms] for a in terms])
+    terms = MONO[:3]
+    pairs = np.asarray([[MONO_INDEX[(a[0] + b[0], a[1] + b[1])] for b in terms] for a in terms])
     pf = p.reshape(n, s * s)
     bk = mono[:, :3]
     w = mask.reshape(n, s * s).astype(np.float32)
@@ -283,11 +207,11 @@ def _plane_fit(p: np.ndarray, mask: np.ndarray, mono: np.ndarray,
     s0 = np.zeros(n)
     c = np.zeros((n, 3), np.float32)
     for it in range(iters + 1):
-        m = _dot(w, mono[:, :6]).astype(np.float64)              # sums of w * (1, x, y, xx, xy, yy)
+        m = dot_rows(w, mono[:, :6]).astype(np.float64)              # sums of w * (1, x, y, xx, xy, yy)
         s0 = m[:, 0]
         A = m[:, pairs]                                       # (N, 3, 3)
         A[:, [0, 1, 2], [0, 1, 2]] += 1e-6 * np.maximum(A[:, [0, 1, 2], [0, 1, 2]], 1e-6) + 1e-9
-        rhs = _dot(w * pf, bk).astype(np.float64)
+        rhs = dot_rows(w * pf, bk).astype(np.float64)
         c = np.linalg.solve(A, rhs[..., None])[..., 0].astype(np.float32)
         resid = pf - (c[:, 0:1] * bk[:, 0] + c[:, 1:2] * bk[:, 1] + c[:, 2:3] * bk[:, 2])  # c @ bk.T, no BLAS
         e2 = np.einsum("ij,ij->i", w * resid, resid, dtype=np.float64)
@@ -309,30 +233,52 @@ def _prefer_informative(mask: np.ndarray, dead: np.ndarray, min_count: int = 20)
     return np.where(enough[:, None, None], info, mask)
 
 
-def _flood(level: np.ndarray, pky: np.ndarray, pkx: np.ndarray, iters: int) -> np.ndarray:
-    """Flood levels ``L`` (int16 (N, S, S)) of each patch from its peak pixel.
+def _flood(level: np.ndarray, pky: np.ndarray, pkx: np.ndarray, iters: int, floor: int) -> np.ndarray:
+    """Flood levels ``L`` (uint8 (N, S, S)) of each patch from its peak pixel, at least ``floor``.
 
-    ``L(p)`` is the largest ``t`` such that ``p`` is 8-connected to the peak through pixels of
-    ``level >= t`` (morphological reconstruction by dilation of the peak under ``level``),
-    computed by ``iters`` rounds of 3x3 dilation clipped by ``level``: exact for pixels
-    reached by such a path within ``iters`` steps, an under-estimate beyond.
+    ``L(p)`` is the largest ``t >= floor`` such that ``p`` is 8-connected to the peak through
+    pixels of ``level >= t`` (morphological reconstruction by dilation of the peak under
+    ``level``), computed by up to ``iters`` rounds of 3x3 dilation clipped by ``level``: exact
+    for pixels reached by such a path within ``iters`` steps, an under-estimate beyond. Only
+    the region above ``floor`` has to be flooded, and a patch leaves the rounds as soon as a
+    round of :data:`_FLOOD_ROUND` steps changes nothing in it (it has converged: exact).
     """
     n, s, _ = level.shape
-    lo = np.iinfo(np.int16).min
-    mos_lvl = _mosaic(level, lo)
-    marker = np.full((n, s, s), lo, np.int16)
-    marker[np.arange(n), pky, pkx] = level[np.arange(n), pky, pkx]
-    mk = _mosaic(marker, lo)
-    for _ in range(iters):
-        mk = cv2.min(cv2.dilate(mk, _K3), mos_lvl)
-    return _unmosaic(mk, n, s)
+    b = s + SEP
+    lv = cv2.max(mosaic(level, floor), floor).reshape(n, b, s)
+    marker = np.full((n, s, s), floor, np.uint8)
+    marker[np.arange(n), pky, pkx] = np.maximum(level[np.arange(n), pky, pkx], floor)
+    mk = mosaic(marker, floor).reshape(n, b, s)
+    # Rounds of a few steps on the patches still changing (a patch that did not change during
+    # a whole round has converged).
+    act = np.arange(n)
+    done = 0
+    while len(act) and done < iters:
+        steps = min(_FLOOD_ROUND, iters - done)
+        whole = len(act) == n
+        m0 = mk if whole else mk[act]
+        lim = (lv if whole else lv[act]).reshape(-1, s)
+        m = m0.reshape(-1, s)
+        for _ in range(steps):
+            m = cv2.min(cv2.dilate(m, K3), lim)
+        m = m.reshape(len(act), b, s)
+        changed = (m != m0).reshape(len(act), -1).any(axis=1)
+        mk[act] = m
+        act = act[changed]
+        done += steps
+    return mk[:, :s]
+
+
+def _thresholds() -> np.ndarray:
+    """The searched levels (:data:`LEVELS`) in the fixed point of the flood levels, int16 (K,)."""
+    return np.rint(np.asarray(LEVELS) * _FP).astype(np.int16)
 
 
 def _moments(q: np.ndarray, mono: np.ndarray) -> tuple:
     """Centroid ``mx, my``, second central moments ``cxx, cxy, cyy`` and mass ``m0`` (N,) of
     soft regions ``q (N, S, S)`` (offsets from the patch centre)."""
     n = q.shape[0]
-    mom = _dot(q.reshape(n, -1), mono[:, :6]).astype(np.float64)
+    mom = dot_rows(q.reshape(n, -1), mono[:, :6]).astype(np.float64)
     m0 = mom[:, 0]
     m0s = np.maximum(m0, 1e-9)
     mx, my = mom[:, 1] / m0s, mom[:, 2] / m0s
@@ -443,36 +389,92 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
     Returns
     -------
     PatchFit
+        Centres in level pixels.
     """
-    H, W = img.shape
     n = len(cx)
+    pat = extract_patches(img, cx, cy, half, bad=bad, saturated=saturated)
+    st = search_levels(pat, radius, max_radius=np.full(n, float(max_radius)),
+                       pixel_noise=np.full(n, float(pixel_noise)))
+    res = fit_outlines(st, np.arange(n), polarity=polarity, min_core=np.full(n, float(min_core)))
+    res.x += cx
+    res.y += cy
+    return res
+
+
+@dataclass
+class LevelSearch:
+    """Steps 1-2 of the fit for a stack of patches (:func:`search_levels`), kept so that
+    outlines at several core levels (:func:`fit_outlines`) share them. Arrays are over the
+    ``alive`` patches (those with a peak) unless noted."""
+
+    n: int                   # patches in the stack
+    half: int
+    alive: np.ndarray        # int (A,): patches with a peak above the ring noise
+    p: np.ndarray            # float32 (A, S, S)
+    pu: np.ndarray           # uint8 (A, S, S)
+    bad: np.ndarray          # bool (A, S, S)
+    sat: np.ndarray          # bool (A, S, S)
+    dead: np.ndarray         # bool (A, S, S): black or clipped
+    d0: np.ndarray           # float32 (A, S, S): patch minus ring plane
+    sig0: np.ndarray         # (A,) ring residual std
+    c0: np.ndarray           # float32 (A, 3) ring plane
+    L: np.ndarray            # uint8 (A, S, S) flood levels
+    lvl: np.ndarray          # uint8 (A, S, S) smoothed signal in fixed point
+    area: np.ndarray         # (A, K) area of the peak's component per level
+    k_found: np.ndarray      # int (A,) core level index found by the search
+    has: np.ndarray          # bool (A,) an isolated core exists
+    peak: np.ndarray         # (A,) peak of the 3x3 mean over the ring plane (grey levels)
+    fill: np.ndarray         # (A,) core area over its moment ellipse's, at the found level
+
+    @classmethod
+    def gather(cls, parts: list[tuple["LevelSearch", np.ndarray]]) -> tuple["LevelSearch", np.ndarray]:
+        """One level search made of patches ``sel`` (stack indices) of several searches of
+        equal half size; returns it and, for every requested patch, its index in it (-1:
+        not alive)."""
+        names = ("p", "pu", "bad", "sat", "dead", "d0", "sig0", "c0", "L", "lvl", "area", "k_found", "has", "peak",
+                 "fill")
+        got = {k: [] for k in names}
+        index, base = [], 0
+        for st, sel in parts:
+            keep, rows = st.rows(np.asarray(sel, np.int64))
+            for k in names:
+                got[k].append(getattr(st, k)[rows])
+            ix = np.full(len(sel), -1)
+            ix[keep] = base + np.arange(len(keep))
+            index.append(ix)
+            base += len(keep)
+        merged = cls(base, parts[0][0].half, np.arange(base), **{k: np.concatenate(v) for k, v in got.items()})
+        return merged, np.concatenate(index)
+
+    def rows(self, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """For patch indices ``sel`` (into the stack), the positions in ``sel`` of those
+        alive and their rows in the alive arrays."""
+        pos = np.full(self.n, -1)
+        pos[self.alive] = np.arange(len(self.alive))
+        r = pos[sel]
+        keep = np.flatnonzero(r >= 0)
+        return keep, r[keep]
+
+
+def search_levels(pat: Patches, radius: np.ndarray, *, max_radius: np.ndarray,
+                  pixel_noise: np.ndarray) -> LevelSearch:
+    """Steps 1 (ring background, peak) and 2 (flood levels, core level) of the fit.
+
+    ``radius``, ``max_radius`` and ``pixel_noise`` are per patch (level px / grey levels of
+    the level each patch came from).
+    """
+    half = pat.half
+    n = len(pat)
     S = 2 * half + 1
-    dy, dx, dxf, dyf, mono, edge = _grid(half)
-    res = PatchFit.empty(n)
-    if n == 0:
-        return res
-    # Flat pixel indices; patches crossing the image border are clamped (and marked outside).
-    inside = (cx >= half) & (cx < W - half) & (cy >= half) & (cy < H - half)
-    flat_idx = ((cy * W + cx)[:, None, None] + (dy * W + dx)[None]).astype(np.intp)
-    outside = np.zeros((n, S, S), bool)
-    if not inside.all():
-        e = np.flatnonzero(~inside)
-        rows = cy[e, None, None] + dy[None]
-        cols = cx[e, None, None] + dx[None]
-        outside[e] = (rows < 0) | (rows >= H) | (cols < 0) | (cols >= W)
-        flat_idx[e] = np.clip(rows, 0, H - 1) * W + np.clip(cols, 0, W - 1)
-    pu = img.ravel()[flat_idx]
+    dy, dx, dxf, dyf, mono, edge = patch_grid(half)
+    pu = pat.pu
     p = pu.astype(np.float32)
-    badp = outside if bad is None else outside | bad.ravel()[flat_idx]
-    if saturated is None:
-        satp = np.zeros_like(outside)
-    else:
-        satp = (pu >= saturated[0]) & (pu <= saturated[1]) & ~outside
+    badp, satp = pat.bad, pat.sat
     # Black or clipped pixels (a dark background beyond the face's silhouette, a clipped
     # card) carry no shading information: left out of backgrounds when enough others remain.
     dead = (pu <= _FLAT_LO) | (pu >= _FLAT_HI)
     rho2 = (dxf * dxf + dyf * dyf)[None]
-    r0 = radius.astype(np.float32)[:, None, None]
+    r0 = np.asarray(radius, np.float32)[:, None, None]
     in_disc = rho2 <= float(half * half)
     idx = np.arange(n)
 
@@ -480,30 +482,34 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
     r_in = np.minimum(1.5 * r0 + 1.5, half - 1.5)
     ring = _prefer_informative((rho2 >= r_in * r_in) & in_disc & ~badp & ~satp, dead)
     d0, sig0, n0, c0 = _plane_fit(p, ring, mono, iters=1)
-    ds = _box3(d0)
+    ds = box3(d0)
     near = rho2 <= np.maximum(1.5, 0.5 * r0) ** 2
     flat = np.where(near, ds, -np.inf).reshape(n, -1)
-    pk = np.argmax(flat, axis=1)
+    pk = np.argmax(flat, axis=1) if n else np.zeros(0, np.int64)
     peak = flat[idx, pk].astype(np.float64)
     pky, pkx = np.divmod(pk, S)
     ok = (peak > 1.0 * sig0) & (peak > 0.5) & (n0 >= 8)
     alive = np.flatnonzero(ok)
-    if len(alive) == 0:
-        return res
 
     # 2. Level search on the flood levels (fixed point: the peak is _FP).
     n = len(alive)
     idx = np.arange(n)
     p, pu, badp, satp, dead, ds, d0 = p[alive], pu[alive], badp[alive], satp[alive], dead[alive], ds[alive], d0[alive]
     pky, pkx, peak, r0 = pky[alive], pkx[alive], peak[alive], r0[alive]
-    scale = (_FP / peak).astype(np.float32)[:, None, None]
-    lvl = np.clip(ds * scale, -30000, 30000).astype(np.int16)
-    L = _flood(lvl, pky, pkx, half + 4)
-    thr = (np.asarray(LEVELS) * _FP).astype(np.int16)                     # (K,)
+    max_radius, pixel_noise = np.asarray(max_radius, float)[alive], np.asarray(pixel_noise, float)[alive]
     K = len(LEVELS)
+    if n == 0:
+        z = np.zeros((0, S, S), np.uint8)
+        return LevelSearch(len(pat), half, alive, p, pu, badp, satp, dead, d0, sig0[alive], c0[alive], z, z,
+                           np.zeros((0, K)), np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0), np.zeros(0))
+    scale = (_FP / peak).astype(np.float32)[:, None, None]
+    lvl = np.clip(ds * scale, 0, 255).astype(np.uint8)
+    thr = _thresholds()                                                    # (K,)
+    # Flood levels below the lowest searched level are never used: they are all ``thr[0] - 1``.
+    L = _flood(lvl, pky, pkx, half + 4, int(thr[0]) - 1)
     Lf = L.reshape(n, -1)
     masks = (Lf[:, None, :] >= thr[None, :, None]).astype(np.float32)      # (n, K, S*S)
-    m = _dot(masks.reshape(n * K, -1), mono[:, :6]).reshape(n, K, 6).astype(np.float64)
+    m = dot_rows(masks.reshape(n * K, -1), mono[:, :6]).reshape(n, K, 6).astype(np.float64)
     area = m[..., 0]
     a_s = np.maximum(area, 1.0)
     vx = m[..., 3] / a_s - (m[..., 1] / a_s) ** 2 + 1.0 / 12.0
@@ -513,7 +519,7 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
     fill = area / (4.0 * np.pi * np.sqrt(np.maximum(vx * vy - vxy * vxy, 1e-6)))
     edge_max = Lf[:, edge.ravel()].max(axis=1)                             # (n,)
     a_max = np.pi * (1.3 * max_radius + 2.0) ** 2
-    valid = (edge_max[:, None] < thr[None]) & (area <= a_max)
+    valid = (edge_max[:, None] < thr[None]) & (area <= a_max[:, None])
     # The shape test only below the peak's noise band (a flat, noisy top is ragged).
     noise_band = 1.0 - _TOP_NOISE * (pixel_noise / 3.0) / peak                # 3x3 mean: sigma / 3
     shaped = np.asarray(LEVELS)[None] <= np.minimum(noise_band, _MAX_SHAPED_LEVEL)[:, None]
@@ -521,32 +527,62 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
     # The core is the lowest level from which every higher level is valid.
     run = np.cumprod(valid[:, ::-1], axis=1)[:, ::-1].astype(bool)         # valid and all above
     has = run[:, -1]
-    kc = np.where(has, np.argmax(run, axis=1), K - 1)
-    k_found = kc
-    if min_core > 0:
-        kc = np.maximum(kc, min(int(np.searchsorted(np.asarray(LEVELS), min_core - 1e-9)), K - 1))
+    k_found = np.where(has, np.argmax(run, axis=1), K - 1)
+    if DEBUG is not None:
+        DEBUG.update(dict(alive=alive, L=L, area=area, fill=fill, edge_max=edge_max, valid=valid, kc=k_found, lvl=lvl,
+                          p=p, peak=peak, pky=pky, pkx=pkx, sig0=sig0[alive], half=half))
+    return LevelSearch(len(pat), half, alive, p, pu, badp, satp, dead, d0, sig0[alive], c0[alive], L, lvl, area,
+                       k_found, has, peak, fill[np.arange(n), k_found])
+
+
+def fit_outlines(st: LevelSearch, sel: np.ndarray, *, polarity: int, min_core: np.ndarray) -> PatchFit:
+    """Steps 3-6 of the fit (local background, coverage, ellipse, shape) for patches ``sel``
+    (indices into the stack of ``st``; repeats allowed) with their core at least at level
+    ``min_core (len(sel),)`` (fraction of the peak; 0: the level the search found).
+
+    Returns a :class:`PatchFit` of ``len(sel)`` rows with centres relative to the patch
+    centre (level px); patches without a peak are not ok.
+    """
+    half = st.half
+    dy, dx, dxf, dyf, mono, edge = patch_grid(half)
+    res = PatchFit.empty(len(sel))
+    keep, rows = st.rows(np.asarray(sel, np.int64))
+    n = len(rows)
+    if n == 0:
+        return res
+    idx = np.arange(n)
+    K = len(LEVELS)
+    thr = _thresholds()
+    if n == len(st.alive) and (rows == idx).all():
+        rows = slice(None)                                                # all, in order: no copies
+    p, badp, satp, dead, d0 = st.p[rows], st.bad[rows], st.sat[rows], st.dead[rows], st.d0[rows]
+    L, lvl, area = st.L[rows], st.lvl[rows], st.area[rows]
+    sig0, c0 = st.sig0[rows], st.c0[rows]
+    k_found = st.k_found[rows]
+    kc = k_found
+    mc = np.asarray(min_core, float)[keep]
+    if (mc > 0).any():
+        kmin = np.minimum(np.searchsorted(np.asarray(LEVELS), mc - 1e-9), K - 1)
+        kc = np.where(mc > 0, np.maximum(kc, kmin), kc)
     core = L >= thr[kc][:, None, None]
     core_area = area[idx, kc]
     above = np.minimum(kc + 1, K - 1)
     area_ratio = np.where(kc < K - 1, area[idx, above] / np.maximum(core_area, 1.0), 1.0)
-    border = ~has
-    ok = has.copy()
+    border = ~st.has[rows]
+    ok = st.has[rows].copy()
 
-    if DEBUG is not None:
-        DEBUG.update(dict(alive=alive, L=L, area=area, fill=fill, edge_max=edge_max, valid=valid, kc=kc, lvl=lvl, p=p, peak=peak,
-                          pky=pky, pkx=pkx, sig0=sig0[alive], half=half))
     # 3. Local background: a plane on a thin band around the core, away from other bright
     # structures (pixels above the core level not connected to it).
     others = (lvl >= thr[kc][:, None, None]) & ~core
-    oth1 = _dilate(others, 1)
-    grown_in = _dilate(core, _BAND[0])
-    band = _dilate(core, _BAND[1]) & ~grown_in & ~oth1 & ~badp & ~satp
+    oth1 = dilate(others, 1)
+    grown_in, grown_out, grown_win = dilate_many(core, (_BAND[0], _BAND[1], 3))
+    band = grown_out & ~grown_in & ~oth1 & ~badp & ~satp
     band = _prefer_informative(band, dead, min_count=10)
     d, sigma, n_band, cb = _plane_fit(p, band, mono, iters=1)
     few = n_band < 10
     if few.any():
-        d[few], sigma[few], cb[few] = d0[few], sig0[alive][few], c0[alive][few]
-    dsb = _box3(d)
+        d[few], sigma[few], cb[few] = d0[few], sig0[few], c0[few]
+    dsb = box3(d)
     c_box = np.where(core, dsb, -np.inf).reshape(n, -1).max(axis=1)
     c_raw = np.where(core, d, -np.inf).reshape(n, -1).max(axis=1)
     C = np.maximum(c_box, 0.9 * c_raw).astype(np.float64)
@@ -554,13 +590,17 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
     Cs = np.where(C > 0, C, 1.0).astype(np.float32)[:, None, None]
 
     # Rejections: masked pixels near the blob, saturation around it.
-    win = _dilate(core, 3) & ~oth1
+    win = grown_win & ~oth1
     ok &= ~(win & badp).any(axis=(1, 2))
     # Saturated pixels next to a white blob: the fraction of its surround (2 px) that is
     # clipped. A dot merging with a clipped region cannot be measured.
-    half_region = win & (d >= 0.5 * Cs)
-    rim = _dilate(half_region, 2) & ~half_region
-    sat_near = (satp & rim).sum(axis=(1, 2)) / np.maximum(rim.sum(axis=(1, 2)), 1)
+    sat_near = np.zeros(n)
+    has_sat = satp.reshape(n, -1).any(axis=1)
+    if has_sat.any():
+        hs = np.flatnonzero(has_sat)
+        half_region = win[hs] & (d[hs] >= 0.5 * Cs[hs])
+        rim = dilate(half_region, 2) & ~half_region
+        sat_near[hs] = (satp[hs] & rim).sum(axis=(1, 2)) / np.maximum(rim.sum(axis=(1, 2)), 1)
     ok &= sat_near <= _MAX_SATURATED_RIM
 
     # 4. Coverage: the signal over the dot's full contrast at each pixel. Paint multiplies the
@@ -569,7 +609,7 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
     # above 255 (a clipped dot's top is 255 everywhere).
     bg_grey = np.maximum(p - d if polarity > 0 else 255.0 - (p - d), 1.0)
     e = d / bg_grey
-    Ce = np.maximum(np.where(core, _box3(e), -np.inf).reshape(n, -1).max(axis=1),
+    Ce = np.maximum(np.where(core, box3(e), -np.inf).reshape(n, -1).max(axis=1),
                     0.9 * np.where(core, e, -np.inf).reshape(n, -1).max(axis=1))
     full = bg_grey * np.where(Ce > 0, Ce, 1.0).astype(np.float32)[:, None, None]
     if polarity > 0:
@@ -578,7 +618,7 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
     # Per-direction local background (a band or a line on one side only), then the soft
     # half-contrast region between it and the dot's top.
     mcx, mcy, _, _, _, _ = _moments(core.astype(np.float32), mono)
-    b_pix, b_sec = _sector_background(_box3(cov), band, win, mcx, mcy, dxf, dyf)
+    b_pix, b_sec = _sector_background(box3(cov), band, win, mcx, mcy, dxf, dyf)
     q = np.clip(_RAMP * (cov - b_pix) / np.maximum(1.0 - b_pix, 1e-3) + (0.5 - 0.5 * _RAMP), 0.0, 1.0) * win
     if DEBUG is not None:
         DEBUG.update(q=q, d=d, win=win, core=core, band=band, C=C)
@@ -587,10 +627,23 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
     mx, my, cxx, cxy, cyy, m0 = _moments(q, mono)
     m0_full = np.maximum(m0, 1e-9)
     q_full = q
+    q = q_full.copy()
+    # Only regions whose trimmed part changed are iterated again (the others have converged:
+    # the same region gives the same moments).
+    cut_prev = np.zeros(q.shape, bool)
+    act = np.arange(n)
     for _ in range(_TRIM_ITERS):
-        dist = ellipse_distance(mx, my, (cxx, cxy, cyy), dxf, dyf)[0]
-        q = np.where(dist > _TRIM_MARGIN, 0.0, q_full)
-        mx, my, cxx, cxy, cyy, m0 = _moments(q, mono)
+        dist = ellipse_distance(mx[act], my[act], (cxx[act], cxy[act], cyy[act]), dxf, dyf)[0]
+        qa = q_full[act]
+        cut = (dist > _TRIM_MARGIN) & (qa > 0)
+        changed = (cut != cut_prev[act]).reshape(len(act), -1).any(axis=1)
+        act, cut, qa = act[changed], cut[changed], qa[changed]
+        if len(act) == 0:
+            break
+        cut_prev[act] = cut
+        qa = np.where(cut, np.float32(0.0), qa)
+        q[act] = qa
+        mx[act], my[act], cxx[act], cxy[act], cyy[act], m0[act] = _moments(qa, mono)
     m0s = np.maximum(m0, 1e-9)
     tr = 0.5 * (cxx + cyy)
     disc = np.sqrt(np.maximum(0.25 * (cxx - cyy) ** 2 + cxy ** 2, 0.0))
@@ -604,14 +657,14 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
     asym = asymmetry(q, mx, my, half)
     prms = profile_rms(d, rho_e2, np.sqrt(major * minor), win & ~badp)
     bg_band = cb[:, 0] + cb[:, 1] * mx + cb[:, 2] * my
-    bg_ring = c0[alive][:, 0] + c0[alive][:, 1] * mx + c0[alive][:, 2] * my
-    for name, val in (("x", cx[alive] + mx), ("y", cy[alive] + my), ("major", major), ("minor", minor),
+    bg_ring = c0[:, 0] + c0[:, 1] * mx + c0[:, 2] * my
+    for name, val in (("x", mx), ("y", my), ("major", major), ("minor", minor),
                       ("angle", angle), ("contrast", C), ("background", bg_band),
                       ("rise", (bg_band - bg_ring) / np.maximum(C, 1e-6)), ("noise", sigma),
-                      ("ring_noise", sig0[alive]), ("core_level", np.asarray(LEVELS)[kc]),
+                      ("ring_noise", sig0), ("core_level", np.asarray(LEVELS)[kc]),
                       ("found_level", np.asarray(LEVELS)[k_found]),
                       ("area_ratio", area_ratio), ("shape_residual", shape), ("asymmetry", asym),
                       ("profile_rms", prms), ("area", m0), ("ok", ok), ("border", border),
                       ("open", 1.0 - b_sec.max(axis=1)), ("kept", m0 / m0_full), ("saturated", sat_near)):
-        getattr(res, name)[alive] = val
+        getattr(res, name)[keep] = val
     return res

@@ -94,7 +94,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FEATURES", "PROFILE_MODEL_ERROR", "features", "probability", "dense_probability",
+__all__ = ["FEATURES", "GATE_FEATURES", "PROFILE_MODEL_ERROR", "features", "probability", "dense_probability",
+           "gate_features", "gate_probability", "gate_threshold", "gate_min_threshold",
            "load_model", "save_model", "network_probability", "shape_residual", "asymmetry", "profile_rms",
            "MODEL_PATH"]
 
@@ -177,6 +178,67 @@ def features(snr: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
         np.clip(np.asarray(m["ctx_line"], float), -1.0, 2.0), np.clip(np.asarray(m["ctx_inner"], float), -1.0, 2.0),
         np.clip(np.asarray(m["core_level"], float) - np.asarray(m["found_level"], float), 0.0, 1.0),
     ], axis=1)
+
+
+#: Features of the gate: the cheap pre-score computed after the level search (steps 1-2 of
+#: the fit), before the outline (steps 3-6), from which candidates that cannot become
+#: probable detections are not fitted further (:func:`gate_probability`).
+GATE_FEATURES: tuple[str, ...] = ("bias", "log_snr", "log_ring_weber", "log_peak_pix", "log_peak_ring", "found_level",
+                                  "log_area", "fill", "log_radius", "level", "peak_weber", "paint", "polarity",
+                                  "background")
+
+
+def gate_features(snr: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
+    """Gate feature matrix ``(N, len(GATE_FEATURES))`` (float64).
+
+    ``m`` holds per candidate: ``ring_weber``; from the level search ``peak`` (grey levels
+    above the ring plane), ``ring_noise`` (its residual std), ``pixel_noise``, ``found_level``,
+    ``core_area`` (full-resolution px^2), ``fill``; the candidate's ``radius`` (px) and
+    ``level``; ``background`` (the ring plane at the centre, original grey levels), ``paint``
+    (as for :func:`features`, from the peak) and ``polarity``.
+    """
+    def log(x, lo, hi):
+        return np.log(np.clip(np.asarray(x, float), lo, hi))
+
+    snr = np.asarray(snr, float)
+    peak = np.asarray(m["peak"], float)
+    bg = np.asarray(m["background"], float)
+    pol = np.asarray(m["polarity"], float)
+    room = np.where(pol > 0, np.minimum(bg, 255.0 - bg), bg)
+    return np.stack([
+        np.ones_like(snr), log(snr, 1.0, _SNR_CAP), log(m["ring_weber"], 0.01, 3.0),
+        log(peak / np.maximum(np.asarray(m["pixel_noise"], float), 0.5), 0.1, _CNR_CAP),
+        log(peak / np.maximum(np.asarray(m["ring_noise"], float), 0.5), 0.1, _CNR_CAP),
+        np.asarray(m["found_level"], float), log(m["core_area"], 1.0, 2000.0),
+        np.clip(np.asarray(m["fill"], float), 0.0, 2.0), log(m["radius"], 0.5, 30.0),
+        np.clip(np.asarray(m["level"], float), 0.0, 3.0),
+        log(peak / np.maximum(room, _MIN_BACKGROUND), 0.01, 3.0),
+        np.clip(np.asarray(m["paint"], float), 0.0, 2.0), pol, np.clip(bg, 0.0, 255.0) / 255.0,
+    ], axis=1)
+
+
+def gate_probability(gf: np.ndarray, model: dict | None = None) -> np.ndarray | None:
+    """The gate's output ``(N,)`` on gate features ``gf`` (a one-hidden-layer network like the
+    classifier, stored as ``gate_*`` arrays), or None when the model has no gate."""
+    model = load_model() if model is None else model
+    if "gate_W1" not in model:
+        return None
+    sub = {k[5:]: model[k] for k in ("gate_mean", "gate_std", "gate_W1", "gate_b1", "gate_w2", "gate_b2")}
+    return network_probability(gf, sub)
+
+
+def gate_threshold(model: dict | None = None) -> float:
+    """Candidates whose gate output is below this are not fitted further (0: no gate)."""
+    model = load_model() if model is None else model
+    return float(model["gate_threshold"]) if "gate_threshold" in model else 0.0
+
+
+def gate_min_threshold(model: dict | None = None) -> float:
+    """The lowest detection threshold at which the gate is used: it was set to drop at most
+    a tenth of a percent of the candidates more probable than this (below it, every
+    candidate is fitted, so that a low threshold shows everything the classifier sees)."""
+    model = load_model() if model is None else model
+    return float(model["gate_keep"]) if "gate_keep" in model else float("inf")
 
 
 def _logistic(z: np.ndarray) -> np.ndarray:

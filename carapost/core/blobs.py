@@ -42,9 +42,10 @@ from .blob_candidates import (
     ring_test,
     signed_image,
 )
-from .blob_fit import fit_patches, patch_half_size
+from .blob_fit import LEVELS, LevelSearch, PatchFit, fit_outlines, patch_half_size, search_levels
+from .blob_patches import Patches, extract_patches
 
-__all__ = ["detect_blobs", "blob_probability", "analyse_blobs", "BlobAnalysis", "empty_table",
+__all__ = ["detect_blobs", "analyse_blobs", "BlobAnalysis", "empty_table", "check_image",
            "CANDIDATE_MIN_SNR"]
 
 #: Dense-stage threshold on the normalised response: deliberately low (recall).
@@ -102,6 +103,11 @@ class BlobAnalysis:
         The dense responses (:class:`carapost.core.blob_candidates.ResponseLevel`).
     n_candidates : int
         Dense candidates before the ring test.
+    gate_features : float64 (N, G)
+        Gate features of each candidate's latest level search
+        (:data:`carapost.core.blob_score.GATE_FEATURES`; 0 where it had no peak).
+    gated : bool (N,)
+        Rejected by the gate (not fitted beyond the level search).
     """
 
     x: np.ndarray
@@ -120,6 +126,8 @@ class BlobAnalysis:
     polarity: int
     levels: list
     n_candidates: int = 0
+    gate_features: np.ndarray | None = None
+    gated: np.ndarray | None = None
 
     def table(self, threshold: float) -> dict[str, np.ndarray]:
         """Detections with ``score > threshold`` as a table of :data:`DETECTION_FIELDS`."""
@@ -142,7 +150,7 @@ def empty_table() -> dict[str, np.ndarray]:
     return {k: np.zeros(0, dt) for k, dt in DETECTION_FIELDS.items()}
 
 
-def _check_image(image: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
+def check_image(image: np.ndarray, mask: np.ndarray | None) -> tuple[np.ndarray, np.ndarray | None]:
     image = np.asarray(image)
     if image.ndim != 2:
         raise ValueError(f"blob detection needs a grayscale image (H, W), got shape {image.shape}")
@@ -189,11 +197,36 @@ class _Context:
         self.max_radius = max_radius
         self.noise: dict[int, float] = {}
         self.masks: dict[int, np.ndarray] = {}
+        # The level search of each candidate's latest fit, reused by the alternative outlines:
+        # ``searches[state[i]]`` row ``row[i]`` (-1: not fitted), at pixel ``px, py`` of ``level``.
+        self.searches: list[LevelSearch] = []
+        self.state = np.zeros(0, np.int64)
+        self.row = np.zeros(0, np.int64)
+        self.px = np.zeros(0, np.int64)
+        self.py = np.zeros(0, np.int64)
+        self.level = np.zeros(0, np.int64)
+
+    def start(self, n: int, snr: np.ndarray, weber: np.ndarray, ref_level: float, gate: float) -> None:
+        """Prepare the per-candidate records for ``n`` candidates (dense SNR, ring Weber
+        contrast), the image's reference grey level and the gate threshold (0: no gate)."""
+        self.snr, self.weber, self.ref_level, self.gate = snr, weber, ref_level, gate
+        self.gate_feat = np.zeros((n, len(blob_score.GATE_FEATURES)))
+        self.gated = np.zeros(n, bool)
+        self.state = np.full(n, -1, np.int64)
+        self.row = np.full(n, -1, np.int64)
+        self.px = np.zeros(n, np.int64)
+        self.py = np.zeros(n, np.int64)
+        self.level = np.zeros(n, np.int64)
 
     def level_noise(self, k: int) -> float:
         if k not in self.noise:
             self.noise[k] = pixel_noise(self.pyr[k])
         return self.noise[k]
+
+    def noise_of(self, k: np.ndarray) -> np.ndarray:
+        """Pixel noise (grey levels) of pyramid levels ``k`` (int (N,)) -> float64 (N,)."""
+        u, inv = np.unique(k, return_inverse=True)
+        return np.array([self.level_noise(int(v)) for v in u])[inv.ravel()]
 
     def level_mask(self, k: int) -> np.ndarray | None:
         if self.mask is None:
@@ -204,7 +237,7 @@ class _Context:
 
 
 def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_radius: float,
-                  adaptive: bool = False, mask: np.ndarray | None = None) -> BlobAnalysis:
+                  adaptive: bool = False, mask: np.ndarray | None = None, gate: bool = True) -> BlobAnalysis:
     """Find, fit and score every blob candidate of one polarity.
 
     Parameters
@@ -218,6 +251,10 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
         Normalise the dense response by a local (per-tile) clutter estimate.
     mask : bool (H, W), optional
         True where pixels must be ignored.
+    gate : bool
+        Apply the classifier's gate (candidates whose pre-score after the level search is too
+        low are not fitted further; :func:`carapost.core.blob_score.gate_probability`).
+        ``False`` fits every candidate (for calibration).
 
     Returns
     -------
@@ -229,7 +266,7 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
     ValueError
         Bad image or mask.
     """
-    image, mask = _check_image(image, mask)
+    image, mask = check_image(image, mask)
     if polarity not in (WHITE, BLACK):
         raise ValueError(f"polarity must be {WHITE} (white) or {BLACK} (black), got {polarity}")
     signed = signed_image(image, polarity)
@@ -249,12 +286,14 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
     rt = ring_test(pyr, levels, cand, ctx.noise, polarity)
     c75 = rt.contrast(0.75)
     weber = rt.contrast(0.5) / np.maximum(rt.background(), 1.0)
-    gate = (c75 >= RING_MIN_CNR * rt.noise) & (weber >= RING_MIN_WEBER)
-    cand, c75, weber = cand.subset(gate), c75[gate], weber[gate]
+    ring_ok = (c75 >= RING_MIN_CNR * rt.noise) & (weber >= RING_MIN_WEBER)
+    cand, c75, weber = cand.subset(ring_ok), c75[ring_ok], weber[ring_ok]
     rep, px, py, ref, rep_radius = _representatives(ctx, cand, c75)
     cand, weber = cand.subset(rep), weber[rep]
 
     n = len(cand)
+    ref_level = _reference_level(image)
+    ctx.start(n, cand.snr, weber, ref_level, blob_score.gate_threshold() if gate else 0.0)
     out = {k: np.zeros(n) for k in _MEASURES}
     out["ring_weber"] = weber.astype(float)
     ok = np.zeros(n, bool)
@@ -285,34 +324,42 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
             _fit(ctx, again, gx, gy, k, np.maximum(out["major"][again], 1.0), out, ok)
             px[again], py[again], level[again] = gx, gy, k
             radius[again] = np.maximum(out["major"][again], 1.0)
-    ref_level = _reference_level(image)
     ctx_img = cv2.blur(signed, (3, 3))
     score, ok_s, feat = _score(cand, out, ok, min_radius, max_radius, ctx_img, polarity, ref_level)
     if n and ALT_CORE_LEVELS:
         # Alternative, tighter outlines for dots whose core was taken at a low level (a dot
         # on an eyebrow, a lip line, next to the mouth): the classifier picks the more
-        # probable outline of each candidate.
-        for lv_alt in ALT_CORE_LEVELS:
-            alt = np.flatnonzero((out["core_level"] < lv_alt - 1e-9) & (score < _ALT_BELOW)
-                                 & (cand.snr >= _ALT_MIN_SNR) & (weber >= _ALT_MIN_WEBER))
-            if len(alt) == 0:
-                continue
-            out2 = {k: v.copy() for k, v in out.items()}
-            ok2 = ok.copy()
-            _fit(ctx, alt, px[alt], py[alt], level[alt], radius[alt], out2, ok2, min_core=lv_alt)
-            score2, ok2_s, feat2 = _score(cand, out2, ok2, min_radius, max_radius, ctx_img, polarity,
+        # probable outline of each candidate. All levels are fitted in one pass from the
+        # candidates' level searches, then taken in order (each level sees the outline the
+        # previous one chose).
+        strong = (score < _ALT_BELOW) & (cand.snr >= _ALT_MIN_SNR) & (weber >= _ALT_MIN_WEBER) & ~ctx.gated
+        reqs = [np.flatnonzero(strong & (out["core_level"] < lv - 1e-9)) for lv in ALT_CORE_LEVELS]
+        rows = np.concatenate(reqs)
+        if len(rows):
+            mc = np.concatenate([np.full(len(r), lv) for r, lv in zip(reqs, ALT_CORE_LEVELS)])
+            out2 = {k: v[rows].copy() for k, v in out.items()}
+            ok2 = np.zeros(len(rows), bool)
+            _fit_alternatives(ctx, rows, mc, out2, ok2)
+            score2, ok2_s, feat2 = _score(cand.subset(rows), out2, ok2, min_radius, max_radius, ctx_img, polarity,
                                           ref_level)
-            better = alt[ok2_s[alt] & (score2[alt] > score[alt])]
-            for k in out:
-                out[k][better] = out2[k][better]
-            ok[better], ok_s[better], score[better], feat[better] = ok2[better], True, score2[better], feat2[better]
+            off = 0
+            for lv_alt, alt in zip(ALT_CORE_LEVELS, reqs):
+                j = np.arange(off, off + len(alt))
+                off += len(alt)
+                take = ((out["core_level"][alt] < lv_alt - 1e-9) & (score[alt] < _ALT_BELOW)
+                        & ok2_s[j] & (score2[j] > score[alt]))
+                better, j = alt[take], j[take]
+                for k in out:
+                    out[k][better] = out2[k][j]
+                ok[better], ok_s[better], score[better], feat[better] = ok2[j], True, score2[j], feat2[j]
     ok = ok_s
     ok &= _unique(out, score, ok)
     cx, cy = cand.full_xy()
     return BlobAnalysis(x=out["x"], y=out["y"], major=out["major"], minor=out["minor"],
                         angle=out["angle"], score=score, ok=ok, features=feat, measures=out,
                         cand_x=cx, cand_y=cy, snr=cand.snr, cand_weber=weber,
-                        polarity=polarity, levels=levels, n_candidates=n_cand)
+                        polarity=polarity, levels=levels, n_candidates=n_cand,
+                        gate_features=ctx.gate_feat, gated=ctx.gated)
 
 
 def _reference_level(image: np.ndarray) -> float:
@@ -425,42 +472,115 @@ def _representatives(ctx: _Context, cand: Candidates, c75: np.ndarray
 
 
 def _fit(ctx: _Context, sel: np.ndarray, px: np.ndarray, py: np.ndarray, level: np.ndarray,
-         radius: np.ndarray, out: dict[str, np.ndarray], ok: np.ndarray, min_core: float = 0.0) -> np.ndarray:
+         radius: np.ndarray, out: dict[str, np.ndarray], ok: np.ndarray) -> np.ndarray:
     """Fit blobs ``sel`` centred on pixels ``px, py`` of pyramid ``level`` with full-resolution
-    radius estimates ``radius``, in groups of equal level and patch size, writing into
-    ``out``/``ok``. Returns ``border (len(sel),)``."""
+    radius estimates ``radius``, writing into ``out``/``ok``. Candidates are fitted in one
+    stack per patch size (whatever their level); the level searches are kept in ``ctx`` for
+    the alternative outlines (:func:`_fit_alternatives`). Returns ``border (len(sel),)``."""
     border = np.zeros(len(sel), bool)
     r_lv = radius / 2.0 ** level
     half = patch_half_size(r_lv)
-    group = level * 10000 + half
-    for gk in np.unique(group):
-        loc = np.flatnonzero(group == gk)
+    for h in np.unique(half):
+        h = int(h)
+        groups = [np.flatnonzero((half == h) & (level == k)) for k in np.unique(level[half == h])]
+        loc = np.concatenate(groups)
+        pat = Patches.concat([extract_patches(ctx.pyr[int(level[g[0]])], px[g], py[g], h,
+                                              bad=ctx.level_mask(int(level[g[0]])),
+                                              saturated=_saturation(int(level[g[0]])) if ctx.polarity > 0 else None)
+                              for g in groups])
+        k = level[loc]
+        noise = ctx.noise_of(k)
+        st = search_levels(pat, r_lv[loc], max_radius=ctx.max_radius / 2.0 ** k, pixel_noise=noise)
         idx = sel[loc]
-        k, h = int(gk // 10000), int(gk % 10000)
-        fit = fit_patches(ctx.pyr[k], px[loc], py[loc], r_lv[loc], h, polarity=ctx.polarity,
-                          pixel_noise=ctx.level_noise(k), max_radius=ctx.max_radius / 2.0 ** k,
-                          bad=ctx.level_mask(k), saturated=_saturation(k) if ctx.polarity > 0 else None,
-                          min_core=min_core)
-        s = 2.0 ** k
-        out["x"][idx] = fit.x * s
-        out["y"][idx] = fit.y * s
-        out["major"][idx] = fit.major * s
-        out["minor"][idx] = fit.minor * s
-        out["angle"][idx] = fit.angle
-        out["contrast"][idx] = fit.contrast
-        # Background level in the original image's grey levels (the level image is signed).
-        out["background"][idx] = fit.background if ctx.polarity > 0 else 255.0 - fit.background
-        for name in ("rise", "noise", "ring_noise", "core_level", "found_level", "area_ratio", "asymmetry", "profile_rms",
-                     "open", "kept", "saturated"):
-            out[name][idx] = getattr(fit, name)
-        out["shape"][idx] = fit.shape_residual
-        out["area"][idx] = fit.area * s * s
-        out["pixel_noise"][idx] = ctx.level_noise(k)
-        out["level"][idx] = k
-        out["border"][idx] = fit.border
-        ok[idx] = fit.ok
+        # The gate: candidates with an isolated core whose pre-score is too low for the
+        # outline to make them probable are not fitted further (rejected).
+        live = st.alive[st.has]
+        gf = _gate_features(ctx, st, idx[st.alive], k[st.alive], noise[st.alive], r_lv[loc][st.alive])
+        ctx.gate_feat[idx[st.alive]] = gf
+        go = live
+        if ctx.gate > 0 and len(live):
+            pg = blob_score.gate_probability(gf[st.has])
+            go = live[pg >= ctx.gate]
+            ctx.gated[idx[live]] = pg < ctx.gate
+        fit_go = fit_outlines(st, go, polarity=ctx.polarity, min_core=np.zeros(len(go)))
+        fit = PatchFit.empty(len(loc))
+        for name in PatchFit.__dataclass_fields__:
+            getattr(fit, name)[go] = getattr(fit_go, name)
+        fit.border[st.alive] = ~st.has
+        _store(out, ok, idx, fit, px[loc], py[loc], k, noise, ctx.polarity)
+        ctx.state[idx] = len(ctx.searches)
+        ctx.row[idx] = np.arange(len(loc))
+        ctx.px[idx], ctx.py[idx], ctx.level[idx] = px[loc], py[loc], k
+        ctx.searches.append(st)
         border[loc] = fit.border
     return border
+
+
+def _gate_features(ctx: _Context, st: LevelSearch, idx: np.ndarray, k: np.ndarray, noise: np.ndarray,
+                   r_lv: np.ndarray) -> np.ndarray:
+    """Gate features (:data:`carapost.core.blob_score.GATE_FEATURES`) of the alive patches of a
+    level search: candidates ``idx`` on levels ``k`` with level pixel noise ``noise`` and
+    radius estimates ``r_lv`` (level px)."""
+    bg_signed = st.c0[:, 0].astype(float)
+    top = bg_signed + st.peak
+    bg = bg_signed if ctx.polarity > 0 else 255.0 - bg_signed
+    top_grey = top if ctx.polarity > 0 else 255.0 - top
+    paint = top_grey / ctx.ref_level if ctx.polarity > 0 else 1.0 - top_grey / ctx.ref_level
+    core_area = st.area[np.arange(len(idx)), st.k_found] * 4.0 ** k
+    m = {"ring_weber": ctx.weber[idx], "peak": st.peak, "ring_noise": st.sig0, "pixel_noise": noise,
+         "found_level": np.asarray(LEVELS)[st.k_found], "core_area": core_area,
+         "fill": st.fill, "radius": r_lv * 2.0 ** k, "level": k, "background": bg, "paint": paint,
+         "polarity": np.full(len(idx), ctx.polarity)}
+    return blob_score.gate_features(ctx.snr[idx], m)
+
+
+def _store(out: dict[str, np.ndarray], ok: np.ndarray, idx: np.ndarray, fit, px: np.ndarray, py: np.ndarray,
+           k: np.ndarray, noise: np.ndarray, polarity: int) -> None:
+    """Write a :class:`~carapost.core.blob_fit.PatchFit` (centres relative to patch centres
+    ``px, py`` of levels ``k``) into rows ``idx`` of ``out``/``ok`` in full-resolution px."""
+    s = 2.0 ** k
+    out["x"][idx] = (px + fit.x) * s
+    out["y"][idx] = (py + fit.y) * s
+    out["major"][idx] = fit.major * s
+    out["minor"][idx] = fit.minor * s
+    out["angle"][idx] = fit.angle
+    out["contrast"][idx] = fit.contrast
+    # Background level in the original image's grey levels (the level image is signed).
+    out["background"][idx] = fit.background if polarity > 0 else 255.0 - fit.background
+    for name in ("rise", "noise", "ring_noise", "core_level", "found_level", "area_ratio", "asymmetry", "profile_rms",
+                 "open", "kept", "saturated"):
+        out[name][idx] = getattr(fit, name)
+    out["shape"][idx] = fit.shape_residual
+    out["area"][idx] = fit.area * s * s
+    out["pixel_noise"][idx] = noise
+    out["level"][idx] = k
+    out["border"][idx] = fit.border
+    ok[idx] = fit.ok
+
+
+def _fit_alternatives(ctx: _Context, cands: np.ndarray, min_core: np.ndarray, out: dict[str, np.ndarray],
+                      ok: np.ndarray) -> None:
+    """Outlines of candidates ``cands`` (repeats allowed) with their core forced to at least
+    ``min_core``, from their latest level search (no refitting of steps 1-2), into rows
+    ``0..len(cands)-1`` of ``out``/``ok``."""
+    st_id = ctx.state[cands]
+    half_of = np.array([st.half for st in ctx.searches] + [-1])
+    halves = half_of[st_id]                                  # -1 (not fitted) picks the last entry
+    for h in np.unique(halves[halves >= 0]):
+        loc = np.flatnonzero(halves == h)
+        parts, order = [], []
+        for sid in np.unique(st_id[loc]):
+            m = loc[st_id[loc] == sid]
+            parts.append((ctx.searches[int(sid)], ctx.row[cands[m]]))
+            order.append(m)
+        loc = np.concatenate(order)
+        st, rows = parts[0] if len(parts) == 1 else LevelSearch.gather(parts)
+        if len(parts) > 1:
+            loc, rows = loc[rows >= 0], rows[rows >= 0]
+        c = cands[loc]
+        fit = fit_outlines(st, rows, polarity=ctx.polarity, min_core=min_core[loc])
+        k = ctx.level[c]
+        _store(out, ok, loc, fit, ctx.px[c], ctx.py[c], k, ctx.noise_of(k), ctx.polarity)
 
 
 def _score(cand, out: dict[str, np.ndarray], ok: np.ndarray, min_radius: float, max_radius: float,
@@ -574,85 +694,13 @@ def detect_blobs(image: np.ndarray, params: BlobParameters, *,
     ValueError
         If the image is not a 2-D uint8 array or the mask does not match it.
     """
-    image, mask = _check_image(image, mask)
+    image, mask = check_image(image, mask)
     tables = []
     for pol, rmin, rmax, thr in _polarities(params):
         an = analyse_blobs(image, pol, min_radius=rmin, max_radius=rmax,
-                           adaptive=params.adaptive_background, mask=mask)
+                           adaptive=params.adaptive_background, mask=mask,
+                           gate=thr >= blob_score.gate_min_threshold())
         tables.append(an.table(thr))
     if not tables:
         return empty_table()
     return {k: np.concatenate([t[k] for t in tables]).astype(dt, copy=False) for k, dt in DETECTION_FIELDS.items()}
-
-
-def blob_probability(image: np.ndarray, params: BlobParameters, polarity: int, *,
-                     mask: np.ndarray | None = None) -> np.ndarray:
-    """Per-pixel probability that a pixel is a blob centre, for the blob preview.
-
-    The dense model (normalised response only) gives every pixel a probability; around each
-    candidate that was fitted, the map is capped by the candidate's final probability (0 for a
-    rejected candidate), and the core of each detection (half its minor axis) carries its
-    score. So the map agrees with :func:`detect_blobs`: a detection's centre pixel carries its
-    score, and no pixel exceeds the threshold without a detection nearby.
-
-    Parameters
-    ----------
-    image : uint8 (H, W)
-    params : BlobParameters
-        Radius range and adaptive flag of the ``polarity`` are used.
-    polarity : int
-        ``WHITE`` (+1) or ``BLACK`` (-1).
-    mask : bool (H, W), optional
-
-    Returns
-    -------
-    float32 (H, W)
-        Probabilities in 0..1 (0 in masked pixels).
-    """
-    image, mask = _check_image(image, mask)
-    if polarity == WHITE:
-        rmin, rmax = params.white_min_radius, params.white_max_radius
-    elif polarity == BLACK:
-        rmin, rmax = params.black_min_radius, params.black_max_radius
-    else:
-        raise ValueError(f"polarity must be {WHITE} (white) or {BLACK} (black), got {polarity}")
-    an = analyse_blobs(image, polarity, min_radius=rmin, max_radius=rmax,
-                       adaptive=params.adaptive_background, mask=mask)
-    H, W = image.shape
-    prob = np.zeros((H, W), np.float32)
-    for lv in an.levels:
-        p = blob_score.dense_probability(lv.snr)
-        if p.shape != (H, W):
-            p = cv2.resize(p, (W, H), interpolation=cv2.INTER_LINEAR)
-        np.maximum(prob, p, out=prob)
-    # Around every fitted candidate the map is capped by its final score (0 if rejected); the
-    # core of each detection (half its minor axis) carries its score.
-    if len(an.x):
-        fin = np.isfinite(an.x) & np.isfinite(an.y)
-        cap = np.where(an.ok, an.score, 0.0)
-        rad = np.clip(np.where(an.ok, an.major, np.maximum(an.major, 2.0)), 1.0, 64.0)
-        _paint_discs(prob, an.x[fin], an.y[fin], rad[fin], cap[fin], np.minimum)
-        det = an.ok & fin
-        core = np.clip(0.5 * an.minor[det], 1.0, 64.0)
-        _paint_discs(prob, an.x[det], an.y[det], core, an.score[det], np.maximum)
-    if mask is not None:
-        prob[mask] = 0.0
-    return prob
-
-
-def _paint_discs(prob: np.ndarray, x: np.ndarray, y: np.ndarray, r: np.ndarray, value: np.ndarray,
-                 op: np.ufunc) -> None:
-    """``prob = op(prob, value_i)`` inside the disc of radius ``r_i`` around each ``(x_i, y_i)``."""
-    H, W = prob.shape
-    rc = np.ceil(r).astype(int)
-    for R in np.unique(rc):
-        sel = rc == R
-        off = np.arange(-R, R + 1)
-        oy, ox = np.meshgrid(off, off, indexing="ij")
-        disc = (ox * ox + oy * oy) <= R * R
-        oy, ox = oy[disc], ox[disc]
-        rows = np.rint(y[sel]).astype(int)[:, None] + oy[None]
-        cols = np.rint(x[sel]).astype(int)[:, None] + ox[None]
-        inside = (rows >= 0) & (rows < H) & (cols >= 0) & (cols < W)
-        vals = np.broadcast_to(value[sel, None], rows.shape).astype(np.float32)
-        op.at(prob, (rows[inside], cols[inside]), vals[inside])

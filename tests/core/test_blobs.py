@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from blob_images import RenderConfig, evaluate, match, render_frame
-from carapost.core.blobs import analyse_blobs, blob_probability, detect_blobs
+from carapost.core.blob_preview import blob_probability
+from carapost.core.blobs import analyse_blobs, detect_blobs
 from carapost.core.detect_range import detect_frames
 from carapost.io.detections_csv import (
     HEADER,
@@ -433,3 +434,82 @@ def test_many_candidates_do_not_overflow_remap():
     ref = (img[yi, xi] * (1 - fx) * (1 - fy) + img[yi, x1] * fx * (1 - fy) + img[y1, xi] * (1 - fx) * fy
            + img[y1, x1] * fx * fy)
     assert v.shape == (70_000,) and np.abs(v - ref).max() < 0.05
+
+
+def test_flood_levels_match_connected_components():
+    """The flood levels (with their floor and per-patch early stop) give, at every searched
+    level, exactly the peak's 8-connected component of the pixels at or above it."""
+    from scipy import ndimage
+
+    from carapost.core.blob_fit import _flood, _thresholds
+
+    rng = np.random.default_rng(3)
+    n, s = 40, 17
+    import cv2
+
+    lvl = np.stack([cv2.GaussianBlur(rng.uniform(0, 255, (s, s)).astype(np.float32), (0, 0), 1.2)
+                    for _ in range(n)])
+    lvl = np.clip((lvl - lvl.min(axis=(1, 2), keepdims=True)) * 3.0, 0, 255).astype(np.uint8)
+    flat = lvl.reshape(n, -1).argmax(axis=1)
+    pky, pkx = np.divmod(flat, s)
+    thr = _thresholds()
+    L = _flood(lvl, pky, pkx, 4 * s, int(thr[0]) - 1)
+    eight = np.ones((3, 3), int)
+    for i in range(n):
+        for t in thr:
+            lab, _ = ndimage.label(lvl[i] >= t, structure=eight)
+            want = (lab == lab[pky[i], pkx[i]]) & (lab > 0)
+            np.testing.assert_array_equal(L[i] >= t, want)
+
+
+def test_level_search_shared_by_outlines_equals_separate_fits():
+    """fit_outlines on a kept LevelSearch (the alternative outlines) gives what a full fit with
+    the same forced core level gives."""
+    from carapost.core.blob_candidates import signed_image
+    from carapost.core.blob_fit import fit_outlines, fit_patches, search_levels
+    from carapost.core.blob_patches import extract_patches
+
+    img, xy = _dots_on_dark_bands(1, 0.7)
+    sig = signed_image(img, BLACK)
+    cx = np.rint(xy[:, 0]).astype(np.int64)
+    cy = np.rint(xy[:, 1]).astype(np.int64)
+    r = np.full(len(cx), 4.0)
+    kw = dict(polarity=BLACK, max_radius=12.0, pixel_noise=2.0, bad=None, saturated=None)
+    st = search_levels(extract_patches(sig, cx, cy, 11), r, max_radius=np.full(len(cx), 12.0),
+                       pixel_noise=np.full(len(cx), 2.0))
+    for lv in (0.0, 0.9):
+        sel = np.concatenate([np.arange(len(cx)), np.arange(len(cx))[::2]])
+        shared = fit_outlines(st, sel, polarity=BLACK, min_core=np.full(len(sel), lv))
+        full = fit_patches(sig, cx, cy, r, 11, min_core=lv, **kw)
+        for name in ("x", "y", "major", "contrast", "core_level", "ok"):
+            a, b = getattr(shared, name)[: len(cx)], getattr(full, name)
+            if name in ("x", "y"):
+                a = a + (cx if name == "x" else cy)
+            np.testing.assert_allclose(a, b, atol=1e-6)
+            np.testing.assert_allclose(getattr(shared, name)[len(cx):], getattr(shared, name)[: len(cx)][::2],
+                                       atol=1e-9)
+
+
+def test_gate_drops_only_improbable_candidates():
+    """The gate rejects fitted candidates of a textured frame (texture spots; on faces about
+    40% of them), and (nearly) only ones the classifier finds improbable: the detections hardly
+    change."""
+    from carapost.core import blob_score
+
+    assert blob_score.gate_threshold() > 0 and blob_score.gate_min_threshold() <= 0.4
+    fr = render_frame(RenderConfig(texture=0.15, size=(480, 640), n_dots=60, polarity="both"), seed=11)
+    n_gated = 0
+    for pol in (BLACK, WHITE):
+        on = analyse_blobs(fr.image, pol, min_radius=1.5, max_radius=12, gate=True)
+        off = analyse_blobs(fr.image, pol, min_radius=1.5, max_radius=12, gate=False)
+        n_gated += int(on.gated.sum())
+        assert np.all(on.score[on.gated] == 0) and not off.gated.any()
+        # What the gate removed the classifier put below the default threshold (allow one).
+        assert int((off.score[on.gated] > 0.4).sum()) <= 1
+        t_on, t_off = on.table(0.4), off.table(0.4)
+        assert abs(len(t_on["x"]) - len(t_off["x"])) <= 1
+    assert n_gated >= 5, n_gated
+    # Below the gate's lowest threshold detect_blobs fits every candidate.
+    lo = detect_blobs(fr.image, params(black_threshold=0.05, find_white_blobs=False))
+    full = analyse_blobs(fr.image, BLACK, min_radius=1.5, max_radius=12, gate=False).table(0.05)
+    assert len(lo["x"]) == len(full["x"])
