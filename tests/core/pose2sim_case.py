@@ -1,12 +1,15 @@
 """The Pose2Sim demo as an automatic-initialization case (shared by the slow test and the benchmark).
 
 Four portrait videos of a person wearing small retro-reflective body markers, with a
-Qualisys calibration. Frame 0 is read from each video, white blobs are detected with the
-project's detector (a small radius range, a low threshold: the markers are grey spheres 5-8 px
-across whose bright side is found), and :func:`~carapost.core.auto_init.auto_initialize` runs
+Qualisys calibration. Frame 0 is read from each video, markers are detected (:func:`detect`:
+white blobs with the project's detector, a small radius range and a low threshold, the markers
+being grey spheres 5-10 px across whose bright side is found; or, ``detector="spheres"``, the
+shaded spheres themselves with :mod:`carapost.core.sphere_markers`), and
+:func:`~carapost.core.auto_init.auto_initialize` runs
 without caddies (the four cameras stand around the room), with a 3 px reprojection
 tolerance: with the file's poses, points seen by three cameras (static ones included)
-reproject 0.7-2.5 px off their detections. Two-view points are not accepted: on frame 0 the
+reproject 0.7-2.5 px off their detections (and about as many are found with one camera's
+detections shifted by 25 px: most are coincidences, see ``docs/initialize-3d.md``). Two-view points are not accepted: on frame 0 the
 five the matcher finds are coincidences (window blinds, edges) when the crops are inspected.
 
 Pose2Sim's own markerless reconstruction of the same frames (``pose-3d/*.trc``, metres, its
@@ -25,10 +28,34 @@ from carapost.model.params import Initialize3DParameters
 #: Blob Parameters for the demo's markers (``benchmarks/bench_pose2sim.py`` compares settings).
 P2S_BLOBS = dict(find_black_blobs=False, find_white_blobs=True, white_min_radius=1.0, white_max_radius=8.0,
                  white_threshold=0.05, adaptive_background=True)
+#: :class:`~carapost.core.sphere_markers.SphereParameters` for the demo's markers (the defaults).
+P2S_SPHERES: dict = {}
+#: The detectors :func:`detect` offers.
+DETECTORS = ("blobs", "spheres")
 #: Initialize 3D parameters (the defaults: no caddy growth happens here).
 P2S_INIT = Initialize3DParameters()
 #: Points closer than this to the markerless skeleton are on the person.
 BODY_RADIUS_MM = 150.0
+#: Markers on the person in cam03 (the back view), frame 0, picked by eye on 8x crops (raw px,
+#: +-1.5 px): two spine markers, elbow, forearm, wrist, upper arm, hand.
+CAM03_MARKERS_FRAME0 = np.array([(695.0, 692.5), (689.0, 737.5), (552.5, 800.0), (574.0, 863.5),
+                                 (562.5, 884.0), (770.0, 763.5), (519.0, 946.5)])
+#: The two spine markers of :data:`CAM03_MARKERS_FRAME0` (its first two rows) in cam04, frame 0,
+#: picked the same way.
+CAM04_SPINE_FRAME0 = np.array([(277.0, 788.0), (293.0, 832.0)])
+
+
+def detect(image: np.ndarray, detector: str = "blobs", **overrides) -> dict:
+    """Detections of one frame: ``"blobs"`` (white blobs, :data:`P2S_BLOBS`) or ``"spheres"``
+    (shaded marker spheres, :data:`P2S_SPHERES`); ``overrides`` replace settings."""
+    if detector == "blobs":
+        from carapost.core.blobs import detect_blobs
+        from carapost.model.params import BlobParameters
+        return detect_blobs(image, BlobParameters(**{**P2S_BLOBS, **overrides}))
+    if detector == "spheres":
+        from carapost.core.sphere_markers import SphereParameters, detect_spheres
+        return detect_spheres(image, SphereParameters(**{**P2S_SPHERES, **overrides}))
+    raise ValueError(f"detector must be one of {DETECTORS}, got {detector!r}")
 
 
 def auto_kwargs(bundle: bool = True, min_views: int = 3) -> dict:

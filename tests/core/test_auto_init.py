@@ -167,7 +167,9 @@ def test_pose2sim_demo_frame0(real_data: Path):
     1.5 px. Not reached: the issue's 1.0 px (static points seen by three cameras reproject
     0.7-2.5 px off with the file's poses, and 7 points do not determine four poses: a bundle
     fits their errors away, so the poses are kept) and this test's former 10 points (with
-    two-view points there are 12, but the five two-view ones are coincidences)."""
+    two-view points there are 12, but the five two-view ones are coincidences). With one camera's
+    detections shifted by 25 px (no true match left in it) 3 points are still found (median of
+    8 runs): about half of the 7 are coincidences."""
     root = real_data / POSE2SIM
     if not root.is_dir():
         pytest.skip("Pose2Sim demo not available")
@@ -198,3 +200,55 @@ def test_pose2sim_demo_frame0(real_data: Path):
     assert np.nanmax(err) <= auto_kwargs()["max_reprojection_px"] + 1e-6
     body = on_body(res.xyz, skeleton_points(root, 0))
     assert body.sum() >= 3, body
+
+
+@pytest.mark.slow
+def test_pose2sim_demo_spheres(real_data: Path):
+    """Real footage with the marker-sphere detector (:mod:`carapost.core.sphere_markers`).
+
+    Measured (benchmarks/bench_pose2sim.py): 197 / 209 / 92 / 167 detections, 40 / 38 / 35 / 44
+    of them near the person (white blobs: 26 / 30 / 25 / 21), and in the back view every marker
+    picked by eye (7, within 1.3 px; white blobs find 3). Automatic initialization then gives
+    10 three-view points, 1 on the person, median 2.2 px with the file's poses; shifting one
+    camera's detections by 25 px (no true match left in it) still gives 6.5 (median of 8 runs):
+    with these poses the points are mostly coincidences, whatever the detector (two spine
+    markers found in both back views lie 18 px off each other's epipolar lines; see
+    docs/initialize-3d.md)."""
+    root = real_data / POSE2SIM
+    if not root.is_dir():
+        pytest.skip("Pose2Sim demo not available")
+    from carapost.core.epipolar_match import triangulate_points
+    from carapost.io.calibration import load_calibration
+    from carapost.io.sources import open_source
+
+    from carapost.core.camera import symmetric_epipolar_distance
+
+    from pose2sim_case import (CAM03_MARKERS_FRAME0, CAM04_SPINE_FRAME0, P2S_INIT, auto_kwargs, detect, near_person,
+                               skeleton_points)
+
+    cal = load_calibration(root / "calibration" / "Calib.qca.txt")
+    R, t = cal.poses(1)
+    R, t = R[0], t[0]
+    skel = skeleton_points(root, 0)
+    dets = [detect(open_source(root / "videos" / f"{n}.mp4").read(0), "spheres") for n in cal.names]
+    near = [int(near_person(np.c_[d["x"], d["y"]], skel, cal.intrinsics[c], R[c], t[c]).sum())
+            for c, d in enumerate(dets)]
+    assert min(near) >= 28, near
+    assert max(len(d["x"]) for d in dets) <= 250, [len(d["x"]) for d in dets]
+    back = np.c_[dets[2]["x"], dets[2]["y"]]
+    miss = np.linalg.norm(CAM03_MARKERS_FRAME0[:, None] - back[None], axis=-1).min(axis=1)
+    assert miss.max() <= 2.0, miss
+    # the two spine markers, detected in both back views, are far off each other's epipolar
+    # lines with the file's poses (measured 18.8 and 17.9 px): no tolerance can match them
+    spine = np.c_[dets[3]["x"], dets[3]["y"]]
+    j = np.argmin(np.linalg.norm(CAM04_SPINE_FRAME0[:, None] - spine[None], axis=-1), axis=1)
+    i = np.argmin(np.linalg.norm(CAM03_MARKERS_FRAME0[:2, None] - back[None], axis=-1), axis=1)
+    assert np.linalg.norm(spine[j] - CAM04_SPINE_FRAME0, axis=1).max() <= 2.0
+    epi = symmetric_epipolar_distance(back[i], spine[j], cal.intrinsics[2], R[2], t[2], cal.intrinsics[3], R[3], t[3])
+    assert np.all(epi > 10.0), epi
+    res = auto_initialize(dets, cal.intrinsics, R, t, P2S_INIT, **auto_kwargs())
+    assert res.n_points >= 1 and res.n_views.min() >= 3
+    assert not res.report["auto"]["poses_bundled"]
+    da = [detection_arrays(d, c) for c, d in enumerate(dets)]
+    _, err = triangulate_points(res.det_index, da, cal.intrinsics, R, t)
+    assert np.nanmax(err) <= auto_kwargs()["max_reprojection_px"] + 1e-6
