@@ -56,7 +56,7 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
                      template: np.ndarray | None = None, ignore: Sequence[int] = (),
                      params: AssignmentParams | None = None, ratio: float = 0.5, passes: int = 2,
                      repair_swaps: bool = True, rigid_check: bool = True, shape_check: bool = True,
-                     isolated_check: bool = True, shape_tolerance: float = 0.5,
+                     isolated_check: bool = True, shape_tolerance: float = 0.5, path_switch: float | None = 300.0,
                      progress: ProgressFn | None = None) -> LabelResult:
     """Label unlabelled point clouds (the default method).
 
@@ -91,6 +91,11 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
         repairs that lower the shape cost or raise it by at most ``shape_tolerance`` per frame
         and marker moved, and then, if that changed anything, the shape check once more.
         No repair is kept that the pairs rigid over the whole take contradict.
+    path_switch : float or None
+        Where the shape check repaired something, the groups of 2-5 markers its repairs
+        permuted together are first decided over the whole take at once
+        (:func:`~carapost.core.label_perm.permutation_path`, a change of permutation costing
+        ``path_switch``), and the shape check runs again from there. None: off.
     isolated_check : bool
         Then unname pieces of tracklets whose label's neighbourhood rules them out
         (:func:`~carapost.core.label_isolated.impossible_pieces`), and give the one marker
@@ -171,9 +176,7 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
               "relative_sigma_mm": round(float(eng.sig_rel), 4), "conflicts": eng.conflicts, "swaps_repaired": 0}
     if repair_swaps:
         from .swaps import detect_swaps, relabel_points
-        xyz = np.full((F, n_markers, 3), np.nan)
-        f, j = np.nonzero(labels >= 0)
-        xyz[f, labels[f, j]] = pts[f, j]
+        xyz, _ = _trajectories(pts, labels, n_markers)
         rep = detect_swaps(xyz, fixed=np.flatnonzero(ign), reference_frame=t0)
         # a repair never overrides a hint: drop those that would move a hinted point
         hinted_frames = np.flatnonzero((h >= 0).any(1))
@@ -192,13 +195,31 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
         report["rigid_renamed"] = rrep["pieces_renamed"]
     if shape_check:
         labels, n_shape, model = _shape_check(pts, labels, tracks, h, n_markers, t0, ign,
-                                              shape_tolerance if repair_swaps else None, groups)
+                                              shape_tolerance if repair_swaps else None, groups,
+                                              path_switch=path_switch)
         report["shape_repairs"] = n_shape
     if isolated_check:
         labels, report["impossible_unnamed"], report["unseen_named"] = _isolated_check(
             pts, labels, tracks, h, n_markers, t0, ign, model)
     report["unlabelled_points"] = int((valid & (labels < 0)).sum())
     return LabelResult(labels, report)
+
+
+def _trajectories(pts: np.ndarray, labels: np.ndarray, n_markers: int,
+                  tid: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Labelled trajectories (F, M, 3) of the points (F, N, 3) and, with ``tid`` (F, N), the
+    tracklet carrying each marker's sample (F, M) (-1 none). Flat indices: a scatter of
+    (frame, label) pairs costs twice as much."""
+    F, N = labels.shape
+    src = np.flatnonzero(labels.ravel() >= 0)
+    dst = (src // N) * n_markers + labels.ravel()[src]
+    xyz = np.full((F * n_markers, 3), np.nan)
+    xyz[dst] = np.take(np.asarray(pts).reshape(-1, 3), src, axis=0)
+    if tid is None:
+        return xyz.reshape(F, n_markers, 3), None
+    pieces = np.full(F * n_markers, -1, np.int64)
+    pieces[dst] = np.asarray(tid).ravel()[src]
+    return xyz.reshape(F, n_markers, 3), pieces.reshape(F, n_markers)
 
 
 def _rigid_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: np.ndarray, n_markers: int,
@@ -222,12 +243,7 @@ def _trusted_frames(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, n_ma
     samples are trusted (between the nearest tracklet changes, see
     :func:`~carapost.core.label_shape.reference_model`)."""
     from .label_shape import _trusted_spans
-    F = pts.shape[0]
-    xyz = np.full((F, n_markers, 3), np.nan)
-    pieces = np.full((F, n_markers), -1, np.int64)
-    f, j = np.nonzero(labels >= 0)
-    xyz[f, labels[f, j]] = pts[f, j]
-    pieces[f, labels[f, j]] = tracks.tid[f, j]
+    xyz, pieces = _trajectories(pts, labels, n_markers, tracks.tid)
     xyz[:, ign] = np.nan
     lo, hi = _trusted_spans(xyz, pieces, t0, 100)
     a, b = int(lo.min()), int(hi.max()) + 1
@@ -240,7 +256,7 @@ def _trusted_frames(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, n_ma
 def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: np.ndarray, n_markers: int,
                  t0: int, ign: np.ndarray, tolerance: float | None,
                  groups: RigidGroups | None = None,
-                 take_veto: float = 1.0) -> tuple[np.ndarray, int, ShapeModel]:
+                 take_veto: float = 1.0, path_switch: float | None = 300.0) -> tuple[np.ndarray, int, ShapeModel]:
     """Re-identify against the shape around frame ``t0``, then repair swaps by continuity again.
 
     :func:`~carapost.core.label_shape.shape_relabels` repairs the labels that contradict the
@@ -257,24 +273,28 @@ def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: 
     reference frame's own tracklets (:func:`~carapost.core.label_shape.rigid_over_take`; a
     label-free measure) must not lose more than ``take_veto`` of shape gain per frame and
     marker moved (near the reference frame a resting arm makes an upper-arm and a forearm
-    marker look rigid). Returns the labels, the number of repairs applied and the shape model
-    (6 partners per marker, from the labels before the repairs).
+    marker look rigid). Where the first shape check repaired something and ``path_switch`` is
+    not None, the groups of markers its repairs permuted together are decided over the whole
+    take first (:func:`_permutation_paths`) and the shape check is redone from there. Returns
+    the labels, the number of repairs applied and the shape model (6 partners per marker,
+    from the labels before the repairs).
     """
     from .label_shape import reference_model, relabel_gain, rigid_over_take, shape_relabels
     from .swaps import apply_relabel, detect_swaps, relabel_points
-    F = pts.shape[0]
-    xyz = np.full((F, n_markers, 3), np.nan)
-    pieces = np.full((F, n_markers), -1, np.int64)
-    f, j = np.nonzero(labels >= 0)
-    xyz[f, labels[f, j]] = pts[f, j]
-    pieces[f, labels[f, j]] = tracks.tid[f, j]
+    xyz, pieces = _trajectories(pts, labels, n_markers, tracks.tid)
     fixed = np.flatnonzero(ign)
     wide = reference_model(xyz, t0, pieces=pieces, k=12)
     model = _first_partners(wide, 6)  # the same as reference_model(..., k=6)
     # the pairs rigid over the whole take, measured along the reference frame's own tracklets
-    # (label-free): a repair they contradict is refused
-    on_ref = (pieces == pieces[t0][None]) & (pieces >= 0)
-    take_model = rigid_over_take(wide, np.where(on_ref[..., None], xyz, np.nan), k=6)
+    # (label-free): a repair they contradict is refused; measured once, and only when a
+    # repair is to be judged
+    take_cache: list[ShapeModel] = []
+
+    def take_model() -> ShapeModel:
+        if not take_cache:
+            on_ref = (pieces == pieces[t0][None]) & (pieces >= 0)
+            take_cache.append(rigid_over_take(wide, np.where(on_ref[..., None], xyz, np.nan), k=6))
+        return take_cache[0]
     hinted_frames = np.flatnonzero((hints >= 0).any(1))
 
     def moves_hint(r) -> bool:
@@ -286,7 +306,7 @@ def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: 
     def rigid_ok(x: np.ndarray, r, gain: float) -> bool:
         if groups is not None and len(groups) and not keeps_rigid_groups(x, r, groups):
             return False
-        return relabel_gain(x, take_model, r) >= -take_veto
+        return relabel_gain(x, take_model(), r) >= -take_veto
 
     accept = rigid_ok
 
@@ -294,6 +314,15 @@ def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: 
                                       propagate=True) if not moves_hint(r)]
     if not keep:
         return labels, 0, model
+    if path_switch is not None:
+        # the markers those repairs permuted together are decided again over the whole take
+        # at once (a confusion carried over many segments, judged on all of them), and the
+        # shape check runs again from there
+        path = _permutation_paths(xyz, pieces, keep, model, t0, fixed, hints, accept, path_switch)
+        if path:
+            x1, p1 = apply_relabel(xyz, path), apply_relabel(pieces, path)
+            keep = path + [r for r in shape_relabels(x1, t0, pieces=p1, fixed=fixed, model=model, accept=accept,
+                                                     propagate=True) if not moves_hint(r)]
     if tolerance is None:
         return relabel_points(labels, keep), len(keep), model
     xyz = apply_relabel(xyz, keep)
@@ -318,6 +347,29 @@ def _shape_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: 
     return relabel_points(labels, keep), len(keep), model
 
 
+def _permutation_paths(xyz: np.ndarray, pieces: np.ndarray, repairs: list, model: ShapeModel, t0: int,
+                       fixed: np.ndarray, hints: np.ndarray, accept, switch_cost: float) -> list:
+    """Whole-take permutation paths (:func:`~carapost.core.label_perm.permutation_path`) of
+    the groups of 2-5 markers that the shape ``repairs`` permuted together (not ``fixed``
+    ones), on the labels before those repairs; each run must pass ``accept``. Returns the
+    runs kept, to apply in order."""
+    from .label_perm import confusable_groups, permutation_path
+    from .label_shape import relabel_gain
+    from .swaps import apply_relabel
+    out: list = []
+    x = xyz
+    for g in confusable_groups(repairs):
+        if np.isin(g, fixed).any():
+            continue
+        locked = np.isin(hints, g).any(1)
+        for r in permutation_path(x, pieces, g, model, t0, switch_cost=switch_cost, locked=locked):
+            if accept is None or accept(x, r, relabel_gain(x, model, r)):
+                x = apply_relabel(x, [r])
+                pieces = apply_relabel(pieces, [r])
+                out.append(r)
+    return out
+
+
 def _first_partners(model: ShapeModel, k: int) -> ShapeModel:
     """The model with each marker's ``k`` most rigid partners only."""
     from .label_shape import ShapeModel
@@ -333,12 +385,7 @@ def _isolated_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hint
     from .label_isolated import impossible_pieces, name_unseen
     from .label_shape import reference_model
     if model is None:
-        F = pts.shape[0]
-        xyz = np.full((F, n_markers, 3), np.nan)
-        pieces = np.full((F, n_markers), -1, np.int64)
-        f, j = np.nonzero(labels >= 0)
-        xyz[f, labels[f, j]] = pts[f, j]
-        pieces[f, labels[f, j]] = tracks.tid[f, j]
+        xyz, pieces = _trajectories(pts, labels, n_markers, tracks.tid)
         xyz[:, ign] = np.nan
         model = reference_model(xyz, t0, pieces=pieces)
     bad = impossible_pieces(pts, labels, tracks.tid, model, protected=hints >= 0)

@@ -91,3 +91,21 @@ def test_segments_from_trajectories():
     assert sorted(owner.tolist()) == sorted(list(range(12)) + [0, 1])
     t = tr.tid[6, 0]
     assert tr.start[t] == 5 and tr.end[t] == 7
+
+
+def test_tracklets_numbered_by_first_point_and_bad_links_refused():
+    import pytest
+    nan = np.nan
+    pts = np.array([[[0, 0, 0], [5, 0, 0], [nan, nan, nan]],
+                    [[5.1, 0, 0], [0.1, 0, 0], [9, 9, 9]],
+                    [[9.1, 9, 9], [5.2, 0, 0], [0.2, 0, 0]]])
+    links = np.array([[-1, -1, -1], [1, 0, -1], [2, 0, 1]], np.int32)
+    tr = build_tracklets(pts, links)
+    # chains: (0,0)->(1,1)->(2,2) is tracklet 0, (0,1)->(1,0)->(2,1) is 1, (1,2)->(2,0) is 2
+    assert tr.tid.tolist() == [[0, 1, -1], [1, 0, 2], [2, 1, 0]]
+    assert tr.start.tolist() == [0, 0, 1] and tr.end.tolist() == [2, 2, 2]
+    assert tr.index[tr.offsets[0]:tr.offsets[1]].tolist() == [0, 1, 2]
+    bad = links.copy()
+    bad[1, 2] = 2  # a link to the empty slot of frame 0
+    with pytest.raises(ValueError, match="empty slots"):
+        build_tracklets(pts, bad)
