@@ -23,9 +23,10 @@ iteratively reweighted least squares over every candidate (positive: within
 The **gate** (the cheap pre-score after the level search, :func:`fit_gate`) is fitted too: a
 small network on :data:`carapost.core.blob_score.GATE_FEATURES` of every candidate with an
 isolated core (collected with the gate off) predicting whether the classifier gives it more
-than ``GATE_TARGET``, with the highest threshold that drops at most ``GATE_LOSS`` of the
-held-out candidates above ``GATE_KEEP``. ``--gate-only`` refits only the gate for the
-classifier in the repository.
+than ``GATE_TARGET``, and with it the **pre-gate** (the same on the features known before the
+flood, :data:`carapost.core.blob_score.PRE_GATE_FEATURES`); their thresholds are chosen
+together so that the two drop at most ``GATE_LOSS`` of the held-out candidates above
+``GATE_KEEP``. ``--gate-only`` refits only the gates for the classifier in the repository.
 
 Writes ``carapost/resources/blob_classifier.json`` (``--out`` to write elsewhere, ``--dry`` not
 at all) and prints one JSON line: held-out log-loss (new and current model), a reliability
@@ -71,6 +72,10 @@ GATE_HIDDEN = 8
 GATE_TARGET = 0.05
 GATE_KEEP = 0.2
 GATE_LOSS = 0.001
+#: Work a pre-gated candidate saves (its level search) relative to a gated one's (its outlines).
+PRE_GATE_WEIGHT = 0.5
+#: The share of ``GATE_LOSS`` the pre-gate may use on its own (it sees less than the gate).
+PRE_GATE_LOSS_SHARE = 0.5
 
 
 def random_config(rng: np.random.Generator) -> RenderConfig:
@@ -300,7 +305,7 @@ def main() -> None:
             import json as _json
             info = _json.loads(blob_score.MODEL_PATH.read_text()).get("info", {})
             info["gate"] = {"command": " ".join(["python benchmarks/fit_blob_score.py"] + sys.argv[1:]),
-                            **{k: report["gate"][k] for k in ("threshold", "validation")}}
+                            **{k: report["gate"][k] for k in ("threshold", "pre_threshold", "validation")}}
             blob_score.save_model(args.out, model, info)
         print(json.dumps(report))
         return
@@ -335,40 +340,66 @@ def main() -> None:
     if not args.dry:
         info = {"command": " ".join(["python benchmarks/fit_blob_score.py"] + sys.argv[1:]),
                 "train": report["train"], "validation_log_loss": round(report["validation"]["log_loss"], 4),
-                "gate": {k: report["gate"][k] for k in ("threshold", "validation")}}
+                "gate": {k: report["gate"][k] for k in ("threshold", "pre_threshold", "validation")}}
         blob_score.save_model(args.out, model, info)
     print(json.dumps(report))
 
 
 def fit_gate(tr: dict, va: dict, model: dict, loss: float = GATE_LOSS) -> dict:
-    """Fit the gate (:func:`carapost.core.blob_score.gate_probability`) into ``model``
-    (``gate_*`` arrays and ``gate_threshold``) and return a report.
+    """Fit the gate and the pre-gate (:func:`carapost.core.blob_score.gate_probability`,
+    :func:`~carapost.core.blob_score.pre_gate_probability`) into ``model`` (``gate_*`` and
+    ``gate_pre_*`` arrays, ``gate_threshold``, ``gate_pre_threshold``) and return a report.
 
-    Its rows are the candidates with an isolated core after the level search; the target is
+    Their rows are the candidates with an isolated core after the level search; the target is
     whether ``model`` gives the candidate a probability above :data:`GATE_TARGET` (0 for
-    those the fit rejects). The threshold is the highest (of a grid) at which at most
-    ``loss`` (:data:`GATE_LOSS`) of the held-out candidates with a probability above :data:`GATE_KEEP`
-    are gated out.
+    those the fit rejects). The pre-gate sees only the features known before the flood
+    (:data:`~carapost.core.blob_score.PRE_GATE_FEATURES`). The two thresholds (each from a
+    grid) are chosen together: at most ``loss`` (:data:`GATE_LOSS`) of the held-out candidates
+    with a probability above :data:`GATE_KEEP` may be dropped by either (and at most
+    :data:`PRE_GATE_LOSS_SHARE` of that by the pre-gate alone), and within that the choice
+    saves the most work (a pre-gated candidate saves its level search as well:
+    :data:`PRE_GATE_WEIGHT`).
     """
     def target(d):
         p = blob_score.network_probability(d["g_X"], model)
         return np.where(d["g_scored"], p, 0.0)
 
     pt, pv = target(tr), target(va)
-    net = fit_network(tr["g_G"], (pt > GATE_TARGET).astype(float), GATE_HIDDEN, PENALTY, seed=7)
+    yt = (pt > GATE_TARGET).astype(float)
+    net = fit_network(tr["g_G"], yt, GATE_HIDDEN, PENALTY, seed=7)
+    cols = blob_score.PRE_GATE_COLUMNS
+    pre = fit_network(tr["g_G"][:, cols], yt, GATE_HIDDEN, PENALTY, seed=7)
     gv = blob_score.network_probability(va["g_G"], net)
+    gp = blob_score.network_probability(va["g_G"][:, cols], pre)
     keep = pv > GATE_KEEP
-    best = 0.0
-    for t in np.concatenate([np.geomspace(1e-4, 0.05, 40), np.linspace(0.05, 0.5, 46)]):
-        if ((gv < t) & keep).sum() <= loss * keep.sum():
-            best = float(t)
+    grid = np.concatenate([[0.0], np.geomspace(1e-4, 0.05, 40), np.linspace(0.05, 0.5, 46)[1:]])
+    below_g = gv[:, None] < grid[None]                                  # (N, T)
+    below_p = gp[:, None] < grid[None]
+    best, best_gain = (0.0, 0.0), -1.0
+    for j, t_pre in enumerate(grid):
+        if (below_p[:, j] & keep).sum() > PRE_GATE_LOSS_SHARE * loss * keep.sum():
+            continue
+        out = below_g | below_p[:, j:j + 1]                              # (N, T) over the gate's grid
+        lost = (out & keep[:, None]).sum(axis=0)
+        gain = out.mean(axis=0) + PRE_GATE_WEIGHT * below_p[:, j].mean()
+        ok = lost <= loss * keep.sum()
+        if ok.any():
+            i = int(np.argmax(np.where(ok, gain, -1.0)))
+            if gain[i] > best_gain:
+                best, best_gain = (float(grid[i]), float(t_pre)), float(gain[i])
     for k, v in net.items():
         model[f"gate_{k}"] = v
-    model["gate_threshold"] = np.asarray(best)
+    for k, v in pre.items():
+        model[f"gate_pre_{k}"] = v
+    model["gate_threshold"] = np.asarray(best[0])
+    model["gate_pre_threshold"] = np.asarray(best[1])
     model["gate_keep"] = np.asarray(GATE_KEEP)
-    gated = gv < best
-    return {"threshold": round(best, 5), "train_rows": int(len(pt)),
+    pregated = gp < best[1]
+    gated = (gv < best[0]) | pregated
+    return {"threshold": round(best[0], 5), "pre_threshold": round(best[1], 5), "train_rows": int(len(pt)),
             "validation": {"rows": int(len(pv)), "gated_fraction": round(float(gated.mean()), 4),
+                           "pregated_fraction": round(float(pregated.mean()), 4),
+                           f"pre_lost_above_{GATE_KEEP}": int((pregated & keep).sum()),
                            f"lost_above_{GATE_KEEP}": int((gated & keep).sum()), f"above_{GATE_KEEP}": int(keep.sum()),
                            "lost_above_0.4": int((gated & (pv > 0.4)).sum()), "above_0.4": int((pv > 0.4).sum())}}
 

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-__all__ = ["Candidates", "ResponseLevel", "RingTest", "signed_image", "pyramid", "detection_scales",
+__all__ = ["Candidates", "ResponseLevel", "RingTest", "signed_image", "pyramid", "detection_scales", "climb",
            "responses", "find_candidates", "ring_test", "pixel_noise", "informative", "OUTER_SIDE",
            "refine_level", "MAX_REFINE_RADIUS"]
 
@@ -401,3 +401,35 @@ def ring_test(pyr: list[np.ndarray], levels: list[ResponseLevel], cand: Candidat
         ring[sel] = np.sort(img[rr, cc].astype(np.float64), axis=1)
         nz[sel] = noise[k]
     return RingTest(centre=centre, ring=ring, noise=nz, polarity=polarity)
+
+
+def climb(img: np.ndarray, x: np.ndarray, y: np.ndarray, steps: int = 16
+           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Move each point uphill on the 3x3 mean of ``img`` (one pixel per step, 8 neighbours)
+    until it reaches a local maximum or ``steps`` steps are done. Returns the end points and
+    the 3x3 mean there (pixels beyond the border repeat the border)."""
+    H, W = img.shape
+    x, y = x.copy(), y.copy()
+    top = np.zeros(len(x))
+    if len(x) == 0:
+        return x, y, top
+    pad = cv2.copyMakeBorder(img, 2, 2, 2, 2, cv2.BORDER_REPLICATE).ravel()
+    Wp = W + 4
+    off = ((np.arange(5)[:, None] - 2) * Wp + np.arange(5)[None] - 2).ravel()    # 5x5 window
+    moving = np.arange(len(x))
+    for _ in range(steps):
+        if len(moving) == 0:
+            break
+        win = pad[((y[moving] + 2) * Wp + x[moving] + 2)[:, None] + off[None]].astype(np.float32).reshape(-1, 5, 5)
+        s = win[:, :-2] + win[:, 1:-1] + win[:, 2:]
+        box = (s[:, :, :-2] + s[:, :, 1:-1] + s[:, :, 2:]).reshape(len(moving), 9)
+        top[moving] = box[:, 4] / 9.0
+        # Prefer staying put on ties (plateaus).
+        box[:, 4] += 1e-3
+        arg = np.argmax(box, axis=1)
+        dy, dx = np.divmod(arg, 3)
+        step = arg != 4
+        x[moving] = np.clip(x[moving] + dx - 1, 0, W - 1)
+        y[moving] = np.clip(y[moving] + dy - 1, 0, H - 1)
+        moving = moving[step]
+    return x, y, top

@@ -4,7 +4,8 @@ All candidates of one patch size (whatever pyramid level they come from) are pro
 together on a stack of square patches ``(N, S, S)`` (:func:`extract_patches`); nothing loops
 over candidates in Python. Morphology and connectivity run on a "mosaic" of the patches
 (stacked with blank rows between them) in single OpenCV calls. Steps 1-2 are
-:func:`search_levels` (its :class:`LevelSearch` is kept), steps 3-5 :func:`fit_outlines`, so
+:func:`search_levels` (its :class:`LevelSearch` is kept), steps 3-5 :func:`fit_outlines` (in
+:mod:`carapost.core.blob_outline`, on patches cropped to the core's neighbourhood), so
 that the detector can reject candidates after step 2 (the gate) and fit alternative outlines
 (a core forced to a higher level) without repeating steps 1-2; :func:`fit_patches` runs both
 on one image.
@@ -37,14 +38,12 @@ For each candidate (signed image: the blob is bright):
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
-from .blob_patches import (K3, MONO, MONO_INDEX, SEP, Patches, box3, dilate, dilate_many, dot_rows,
-                           extract_patches, mosaic, patch_grid)
-from .blob_score import asymmetry, ellipse_distance, profile_rms, shape_residual
+from .blob_patches import K3, MONO, MONO_INDEX, SEP, Patches, box3, dot_rows, extract_patches, mosaic, patch_grid
 
 __all__ = ["PatchFit", "fit_patches", "patch_half_size", "LEVELS"]
 
@@ -63,19 +62,9 @@ _FILL_MIN_AREA = 20
 _TOP_NOISE = 4.0
 #: ... and not above this level (the top of a flat, clipped or JPEG-coded dot is ragged).
 _MAX_SHAPED_LEVEL = 0.8
-#: Inner and outer radius (px) of the band around the core used as local background.
-_BAND = (2, 4)
-#: Largest fraction of a white blob's surround (2 px) that may be clipped at 255.
-_MAX_SATURATED_RIM = 0.3
-#: Slope of the soft half-contrast region ``q = clip(RAMP (d/C - 1/2) + 1/2, 0, 1)``.
-_RAMP = 1.5
 #: Fixed-point scale of the flood levels (uint8, clipped at 255; the peak is ``_FP``: the
 #: searched levels are exact multiples of 10, and 8-bit morphology is the fastest).
 _FP = 200
-#: Trimmed moments: iterations, and the distance (px) beyond the moment ellipse from which
-#: the region is dropped.
-_TRIM_ITERS = 3
-_TRIM_MARGIN = 1.0
 DEBUG: dict | None = None
 
 
@@ -288,71 +277,6 @@ def _moments(q: np.ndarray, mono: np.ndarray) -> tuple:
     return mx, my, cxx, cxy, cyy, m0
 
 
-#: Angular sectors of the local background, and the highest level (fraction of the dot's
-#: full contrast) a sector's background may take.
-_N_SECTORS = 8
-_MAX_SECTOR_LEVEL = 0.7
-
-
-def _diamond_angle(ux: np.ndarray, uy: np.ndarray) -> np.ndarray:
-    """A monotonic stand-in for the polar angle, in [0, 4) (0 along +x, 1 along +y, ...)."""
-    t = uy / np.maximum(np.abs(ux) + np.abs(uy), 1e-6)
-    return np.where(ux >= 0, np.where(uy >= 0, t, 4.0 + t), 2.0 - t)
-
-
-def _sector_background(d: np.ndarray, band: np.ndarray, need: np.ndarray, cx: np.ndarray, cy: np.ndarray,
-                       dxf: np.ndarray, dyf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Background of each patch as a function of the direction from ``cx, cy``.
-
-    ``d`` is the (smoothed) signal in units of the dot's full contrast. The ``band`` pixels
-    are split into :data:`_N_SECTORS` angular sectors; each sector's level is the highest
-    value of its band pixels (the structure right next to the dot on that side: a line
-    touching it rather than the skin beyond); sectors without band pixels take their
-    neighbours' value; levels are capped at :data:`_MAX_SECTOR_LEVEL`. Returns the background
-    ``(N, S, S)`` at the ``need`` pixels (interpolated linearly in angle; 0 elsewhere) and the
-    sector levels ``(N, K)``.
-    """
-    n = d.shape[0]
-    K = _N_SECTORS
-    b = np.zeros(d.shape, np.float32)
-    if n == 0:
-        return b, np.zeros((0, K))
-    S2 = d.shape[1] * d.shape[2]
-    sel = np.flatnonzero((band | need).ravel())
-    patch, pix = np.divmod(sel, S2)
-    ux = dxf.ravel()[pix] - cx.astype(np.float32)[patch]
-    uy = dyf.ravel()[pix] - cy.astype(np.float32)[patch]
-    ang = _diamond_angle(ux, uy) * (K / 4.0)                               # [0, K)
-    is_band = band.ravel()[sel]
-    key = patch[is_band] * K + np.minimum(ang[is_band].astype(np.int64), K - 1)
-    cnt = np.bincount(key, minlength=n * K)
-    level = np.full(n * K, -np.inf)
-    np.maximum.at(level, key, d.ravel()[sel[is_band]].astype(np.float64))
-    valid = (cnt >= 2).reshape(n, K)
-    level = np.where(valid, level.reshape(n, K), 0.0)
-    # Fill empty sectors from their neighbours (a few passes around the circle).
-    for _ in range(K // 2):
-        if valid.all():
-            break
-        left, right = np.roll(level, 1, axis=1), np.roll(level, -1, axis=1)
-        vl, vr = np.roll(valid, 1, axis=1), np.roll(valid, -1, axis=1)
-        fill = (left * vl + right * vr) / np.maximum(vl.astype(float) + vr, 1.0)
-        newly = ~valid & (vl | vr)
-        level = np.where(newly, fill, level)
-        valid = valid | newly
-    level = np.minimum(np.where(valid, level, 0.0), _MAX_SECTOR_LEVEL)
-    # Linear interpolation between sector centres.
-    is_need = need.ravel()[sel]
-    s = ang[is_need] - 0.5
-    k0 = np.floor(s).astype(np.int64)
-    f = (s - k0).astype(np.float32)
-    k0 %= K
-    lv = level.astype(np.float32).ravel()
-    base = patch[is_need] * K
-    b.ravel()[sel[is_need]] = (1.0 - f) * lv[base + k0] + f * lv[base + (k0 + 1) % K]
-    return b, level
-
-
 def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndarray, half: int, *,
                 polarity: int, max_radius: float, pixel_noise: float, bad: np.ndarray | None, saturated: tuple[int, int] | None,
                 min_core: float = 0.0) -> PatchFit:
@@ -395,6 +319,8 @@ def fit_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, radius: np.ndar
     pat = extract_patches(img, cx, cy, half, bad=bad, saturated=saturated)
     st = search_levels(pat, radius, max_radius=np.full(n, float(max_radius)),
                        pixel_noise=np.full(n, float(pixel_noise)))
+    from .blob_outline import fit_outlines
+
     res = fit_outlines(st, np.arange(n), polarity=polarity, min_core=np.full(n, float(min_core)))
     res.x += cx
     res.y += cy
@@ -425,26 +351,8 @@ class LevelSearch:
     has: np.ndarray          # bool (A,) an isolated core exists
     peak: np.ndarray         # (A,) peak of the 3x3 mean over the ring plane (grey levels)
     fill: np.ndarray         # (A,) core area over its moment ellipse's, at the found level
-
-    @classmethod
-    def gather(cls, parts: list[tuple["LevelSearch", np.ndarray]]) -> tuple["LevelSearch", np.ndarray]:
-        """One level search made of patches ``sel`` (stack indices) of several searches of
-        equal half size; returns it and, for every requested patch, its index in it (-1:
-        not alive)."""
-        names = ("p", "pu", "bad", "sat", "dead", "d0", "sig0", "c0", "L", "lvl", "area", "k_found", "has", "peak",
-                 "fill")
-        got = {k: [] for k in names}
-        index, base = [], 0
-        for st, sel in parts:
-            keep, rows = st.rows(np.asarray(sel, np.int64))
-            for k in names:
-                got[k].append(getattr(st, k)[rows])
-            ix = np.full(len(sel), -1)
-            ix[keep] = base + np.arange(len(keep))
-            index.append(ix)
-            base += len(keep)
-        merged = cls(base, parts[0][0].half, np.arange(base), **{k: np.concatenate(v) for k, v in got.items()})
-        return merged, np.concatenate(index)
+    # int: stack indices of the patches with a peak that the pre-gate rejected (not alive)
+    pregated: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     def rows(self, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For patch indices ``sel`` (into the stack), the positions in ``sel`` of those
@@ -457,11 +365,14 @@ class LevelSearch:
 
 
 def search_levels(pat: Patches, radius: np.ndarray, *, max_radius: np.ndarray,
-                  pixel_noise: np.ndarray) -> LevelSearch:
+                  pixel_noise: np.ndarray, pre_gate=None) -> LevelSearch:
     """Steps 1 (ring background, peak) and 2 (flood levels, core level) of the fit.
 
     ``radius``, ``max_radius`` and ``pixel_noise`` are per patch (level px / grey levels of
-    the level each patch came from).
+    the level each patch came from). ``pre_gate(alive, peak, ring_noise, ring_plane)``
+    (optional) is called after step 1 with the patches that have a peak (int (A,)), their peak
+    and ring residual std (A,) and ring plane coefficients (A, 3), and returns which of them
+    go on to step 2 (bool (A,)); the others are listed in ``pregated``.
     """
     half = pat.half
     n = len(pat)
@@ -490,6 +401,10 @@ def search_levels(pat: Patches, radius: np.ndarray, *, max_radius: np.ndarray,
     pky, pkx = np.divmod(pk, S)
     ok = (peak > 1.0 * sig0) & (peak > 0.5) & (n0 >= 8)
     alive = np.flatnonzero(ok)
+    pregated = np.zeros(0, np.int64)
+    if pre_gate is not None and len(alive):
+        go = pre_gate(alive, peak[alive], sig0[alive], c0[alive])
+        pregated, alive = alive[~go], alive[go]
 
     # 2. Level search on the flood levels (fixed point: the peak is _FP).
     n = len(alive)
@@ -501,7 +416,8 @@ def search_levels(pat: Patches, radius: np.ndarray, *, max_radius: np.ndarray,
     if n == 0:
         z = np.zeros((0, S, S), np.uint8)
         return LevelSearch(len(pat), half, alive, p, pu, badp, satp, dead, d0, sig0[alive], c0[alive], z, z,
-                           np.zeros((0, K)), np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0), np.zeros(0))
+                           np.zeros((0, K)), np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0), np.zeros(0),
+                           pregated)
     scale = (_FP / peak).astype(np.float32)[:, None, None]
     lvl = np.clip(ds * scale, 0, 255).astype(np.uint8)
     thr = _thresholds()                                                    # (K,)
@@ -532,139 +448,4 @@ def search_levels(pat: Patches, radius: np.ndarray, *, max_radius: np.ndarray,
         DEBUG.update(dict(alive=alive, L=L, area=area, fill=fill, edge_max=edge_max, valid=valid, kc=k_found, lvl=lvl,
                           p=p, peak=peak, pky=pky, pkx=pkx, sig0=sig0[alive], half=half))
     return LevelSearch(len(pat), half, alive, p, pu, badp, satp, dead, d0, sig0[alive], c0[alive], L, lvl, area,
-                       k_found, has, peak, fill[np.arange(n), k_found])
-
-
-def fit_outlines(st: LevelSearch, sel: np.ndarray, *, polarity: int, min_core: np.ndarray) -> PatchFit:
-    """Steps 3-6 of the fit (local background, coverage, ellipse, shape) for patches ``sel``
-    (indices into the stack of ``st``; repeats allowed) with their core at least at level
-    ``min_core (len(sel),)`` (fraction of the peak; 0: the level the search found).
-
-    Returns a :class:`PatchFit` of ``len(sel)`` rows with centres relative to the patch
-    centre (level px); patches without a peak are not ok.
-    """
-    half = st.half
-    dy, dx, dxf, dyf, mono, edge = patch_grid(half)
-    res = PatchFit.empty(len(sel))
-    keep, rows = st.rows(np.asarray(sel, np.int64))
-    n = len(rows)
-    if n == 0:
-        return res
-    idx = np.arange(n)
-    K = len(LEVELS)
-    thr = _thresholds()
-    if n == len(st.alive) and (rows == idx).all():
-        rows = slice(None)                                                # all, in order: no copies
-    p, badp, satp, dead, d0 = st.p[rows], st.bad[rows], st.sat[rows], st.dead[rows], st.d0[rows]
-    L, lvl, area = st.L[rows], st.lvl[rows], st.area[rows]
-    sig0, c0 = st.sig0[rows], st.c0[rows]
-    k_found = st.k_found[rows]
-    kc = k_found
-    mc = np.asarray(min_core, float)[keep]
-    if (mc > 0).any():
-        kmin = np.minimum(np.searchsorted(np.asarray(LEVELS), mc - 1e-9), K - 1)
-        kc = np.where(mc > 0, np.maximum(kc, kmin), kc)
-    core = L >= thr[kc][:, None, None]
-    core_area = area[idx, kc]
-    above = np.minimum(kc + 1, K - 1)
-    area_ratio = np.where(kc < K - 1, area[idx, above] / np.maximum(core_area, 1.0), 1.0)
-    border = ~st.has[rows]
-    ok = st.has[rows].copy()
-
-    # 3. Local background: a plane on a thin band around the core, away from other bright
-    # structures (pixels above the core level not connected to it).
-    others = (lvl >= thr[kc][:, None, None]) & ~core
-    oth1 = dilate(others, 1)
-    grown_in, grown_out, grown_win = dilate_many(core, (_BAND[0], _BAND[1], 3))
-    band = grown_out & ~grown_in & ~oth1 & ~badp & ~satp
-    band = _prefer_informative(band, dead, min_count=10)
-    d, sigma, n_band, cb = _plane_fit(p, band, mono, iters=1)
-    few = n_band < 10
-    if few.any():
-        d[few], sigma[few], cb[few] = d0[few], sig0[few], c0[few]
-    dsb = box3(d)
-    c_box = np.where(core, dsb, -np.inf).reshape(n, -1).max(axis=1)
-    c_raw = np.where(core, d, -np.inf).reshape(n, -1).max(axis=1)
-    C = np.maximum(c_box, 0.9 * c_raw).astype(np.float64)
-    ok &= C > 0
-    Cs = np.where(C > 0, C, 1.0).astype(np.float32)[:, None, None]
-
-    # Rejections: masked pixels near the blob, saturation around it.
-    win = grown_win & ~oth1
-    ok &= ~(win & badp).any(axis=(1, 2))
-    # Saturated pixels next to a white blob: the fraction of its surround (2 px) that is
-    # clipped. A dot merging with a clipped region cannot be measured.
-    sat_near = np.zeros(n)
-    has_sat = satp.reshape(n, -1).any(axis=1)
-    if has_sat.any():
-        hs = np.flatnonzero(has_sat)
-        half_region = win[hs] & (d[hs] >= 0.5 * Cs[hs])
-        rim = dilate(half_region, 2) & ~half_region
-        sat_near[hs] = (satp[hs] & rim).sum(axis=(1, 2)) / np.maximum(rim.sum(axis=(1, 2)), 1)
-    ok &= sat_near <= _MAX_SATURATED_RIM
-
-    # 4. Coverage: the signal over the dot's full contrast at each pixel. Paint multiplies the
-    # light, so the full contrast is a fixed fraction ``Ce`` of the local background's grey
-    # level in the original image (shading across the dot cancels); a white dot cannot rise
-    # above 255 (a clipped dot's top is 255 everywhere).
-    bg_grey = np.maximum(p - d if polarity > 0 else 255.0 - (p - d), 1.0)
-    e = d / bg_grey
-    Ce = np.maximum(np.where(core, box3(e), -np.inf).reshape(n, -1).max(axis=1),
-                    0.9 * np.where(core, e, -np.inf).reshape(n, -1).max(axis=1))
-    full = bg_grey * np.where(Ce > 0, Ce, 1.0).astype(np.float32)[:, None, None]
-    if polarity > 0:
-        full = np.minimum(full, 255.0 - bg_grey)
-    cov = d / np.maximum(full, 1e-3)
-    # Per-direction local background (a band or a line on one side only), then the soft
-    # half-contrast region between it and the dot's top.
-    mcx, mcy, _, _, _, _ = _moments(core.astype(np.float32), mono)
-    b_pix, b_sec = _sector_background(box3(cov), band, win, mcx, mcy, dxf, dyf)
-    q = np.clip(_RAMP * (cov - b_pix) / np.maximum(1.0 - b_pix, 1e-3) + (0.5 - 0.5 * _RAMP), 0.0, 1.0) * win
-    if DEBUG is not None:
-        DEBUG.update(q=q, d=d, win=win, core=core, band=band, C=C)
-    # 5. Ellipse and centre: moments of the region, trimmed a few times of the parts beyond
-    # the moment ellipse (a line or a shadow touching the dot).
-    mx, my, cxx, cxy, cyy, m0 = _moments(q, mono)
-    m0_full = np.maximum(m0, 1e-9)
-    q_full = q
-    q = q_full.copy()
-    # Only regions whose trimmed part changed are iterated again (the others have converged:
-    # the same region gives the same moments).
-    cut_prev = np.zeros(q.shape, bool)
-    act = np.arange(n)
-    for _ in range(_TRIM_ITERS):
-        dist = ellipse_distance(mx[act], my[act], (cxx[act], cxy[act], cyy[act]), dxf, dyf)[0]
-        qa = q_full[act]
-        cut = (dist > _TRIM_MARGIN) & (qa > 0)
-        changed = (cut != cut_prev[act]).reshape(len(act), -1).any(axis=1)
-        act, cut, qa = act[changed], cut[changed], qa[changed]
-        if len(act) == 0:
-            break
-        cut_prev[act] = cut
-        qa = np.where(cut, np.float32(0.0), qa)
-        q[act] = qa
-        mx[act], my[act], cxx[act], cxy[act], cyy[act], m0[act] = _moments(qa, mono)
-    m0s = np.maximum(m0, 1e-9)
-    tr = 0.5 * (cxx + cyy)
-    disc = np.sqrt(np.maximum(0.25 * (cxx - cyy) ** 2 + cxy ** 2, 0.0))
-    major = 2.0 * np.sqrt(np.maximum(tr + disc, 1e-6))
-    minor = 2.0 * np.sqrt(np.maximum(tr - disc, 1e-6))
-    angle = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)
-    ok &= m0 >= 1.5
-
-    # 6. Shape measurements.
-    shape, rho_e2 = shape_residual(q, mx, my, (cxx, cxy, cyy), dxf, dyf, win, m0s)
-    asym = asymmetry(q, mx, my, half)
-    prms = profile_rms(d, rho_e2, np.sqrt(major * minor), win & ~badp)
-    bg_band = cb[:, 0] + cb[:, 1] * mx + cb[:, 2] * my
-    bg_ring = c0[:, 0] + c0[:, 1] * mx + c0[:, 2] * my
-    for name, val in (("x", mx), ("y", my), ("major", major), ("minor", minor),
-                      ("angle", angle), ("contrast", C), ("background", bg_band),
-                      ("rise", (bg_band - bg_ring) / np.maximum(C, 1e-6)), ("noise", sigma),
-                      ("ring_noise", sig0), ("core_level", np.asarray(LEVELS)[kc]),
-                      ("found_level", np.asarray(LEVELS)[k_found]),
-                      ("area_ratio", area_ratio), ("shape_residual", shape), ("asymmetry", asym),
-                      ("profile_rms", prms), ("area", m0), ("ok", ok), ("border", border),
-                      ("open", 1.0 - b_sec.max(axis=1)), ("kept", m0 / m0_full), ("saturated", sat_near)):
-        getattr(res, name)[keep] = val
-    return res
+                       k_found, has, peak, fill[np.arange(n), k_found], pregated)

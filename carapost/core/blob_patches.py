@@ -63,13 +63,37 @@ def dilate(mask: np.ndarray, r: int) -> np.ndarray:
     return unmosaic(cv2.dilate(mosaic(mask), _KERNELS[r]), n, s).astype(bool)
 
 
+#: Rows of each disc kernel: ``(dy, half width)``.
+_KERNEL_ROWS = {r: [(i - r, int(np.flatnonzero(k[i]).max()) - r) for i in range(k.shape[0])]
+                for r, k in _KERNELS.items()}
+
+
 def dilate_many(mask: np.ndarray, radii: tuple[int, ...]) -> list[np.ndarray]:
-    """:func:`dilate` of one stack by several radii (one mosaic)."""
+    """:func:`dilate` of one stack by several radii (one mosaic). A disc is a stack of
+    horizontal segments: the mosaic is dilated once per segment width (shared by the radii)
+    and each dilation is the maximum of those rows shifted by the segments' offsets (the
+    blank rows between the patches keep the shifts inside each patch); the same as one
+    dilation by the disc, in about half the time."""
     n, s, _ = mask.shape
     if n == 0:
         return [mask.copy() for _ in radii]
     mos = mosaic(mask)
-    return [unmosaic(cv2.dilate(mos, _KERNELS[r]), n, s).astype(bool) for r in radii]
+    rows: dict[int, np.ndarray] = {}
+    out = []
+    for r in radii:
+        acc = np.zeros_like(mos)
+        for dy, w in _KERNEL_ROWS[r]:
+            if w not in rows:
+                rows[w] = cv2.dilate(mos, np.ones((1, 2 * w + 1), np.uint8)) if w > 0 else mos
+            h = rows[w]
+            if dy > 0:
+                np.maximum(acc[:-dy], h[dy:], out=acc[:-dy])
+            elif dy < 0:
+                np.maximum(acc[-dy:], h[:dy], out=acc[-dy:])
+            else:
+                np.maximum(acc, h, out=acc)
+        out.append(unmosaic(acc, n, s).astype(bool))
+    return out
 
 
 def box3(d: np.ndarray) -> np.ndarray:

@@ -94,8 +94,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["FEATURES", "GATE_FEATURES", "PROFILE_MODEL_ERROR", "features", "probability", "dense_probability",
-           "gate_features", "gate_probability", "gate_threshold", "gate_min_threshold",
+__all__ = ["FEATURES", "GATE_FEATURES", "PRE_GATE_FEATURES", "PROFILE_MODEL_ERROR", "features", "probability",
+           "dense_probability", "gate_features", "gate_probability", "gate_threshold", "gate_min_threshold",
+           "pre_gate_probability", "pre_gate_threshold",
            "load_model", "save_model", "network_probability", "shape_residual", "asymmetry", "profile_rms",
            "MODEL_PATH"]
 
@@ -215,6 +216,34 @@ def gate_features(snr: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
         log(peak / np.maximum(room, _MIN_BACKGROUND), 0.01, 3.0),
         np.clip(np.asarray(m["paint"], float), 0.0, 2.0), pol, np.clip(bg, 0.0, 255.0) / 255.0,
     ], axis=1)
+
+
+#: The gate features known before the flood (step 1 of the level search: ring background and
+#: peak): the **pre-gate**, a second small network on these alone, rejects the clearest
+#: non-dots before their flood and level search (:func:`pre_gate_probability`).
+PRE_GATE_FEATURES: tuple[str, ...] = tuple(f for f in GATE_FEATURES if f not in ("found_level", "log_area", "fill"))
+#: Columns of :data:`GATE_FEATURES` that are :data:`PRE_GATE_FEATURES`.
+PRE_GATE_COLUMNS = np.array([GATE_FEATURES.index(f) for f in PRE_GATE_FEATURES])
+
+
+def pre_gate_probability(gf: np.ndarray, model: dict | None = None) -> np.ndarray | None:
+    """The pre-gate's output ``(N,)`` on gate features ``gf (N, len(GATE_FEATURES))`` (only
+    the :data:`PRE_GATE_COLUMNS` are read; a network stored as ``gate_pre_*`` arrays), or None
+    when the model has no pre-gate."""
+    model = load_model() if model is None else model
+    if "gate_pre_W1" not in model:
+        return None
+    sub = {k[9:]: model[k] for k in ("gate_pre_mean", "gate_pre_std", "gate_pre_W1", "gate_pre_b1", "gate_pre_w2",
+                                     "gate_pre_b2")}
+    g = np.asarray(gf, float)[:, PRE_GATE_COLUMNS]
+    return network_probability(g, sub)
+
+
+def pre_gate_threshold(model: dict | None = None) -> float:
+    """Candidates whose pre-gate output is below this are rejected before their flood (0: no
+    pre-gate). Used with the gate (:func:`gate_min_threshold`)."""
+    model = load_model() if model is None else model
+    return float(model["gate_pre_threshold"]) if "gate_pre_threshold" in model else 0.0
 
 
 def gate_probability(gf: np.ndarray, model: dict | None = None) -> np.ndarray | None:

@@ -33,6 +33,7 @@ from . import blob_score
 from .blob_context import context_ring
 from .blob_candidates import (
     Candidates,
+    climb,
     detection_scales,
     find_candidates,
     pixel_noise,
@@ -42,8 +43,10 @@ from .blob_candidates import (
     ring_test,
     signed_image,
 )
-from .blob_fit import LEVELS, LevelSearch, PatchFit, fit_outlines, patch_half_size, search_levels
+from .blob_fit import LEVELS, LevelSearch, PatchFit, patch_half_size, search_levels
+from .blob_outline import fit_outline_parts
 from .blob_patches import Patches, extract_patches
+from .blob_select import unique_detections
 
 __all__ = ["detect_blobs", "analyse_blobs", "BlobAnalysis", "empty_table", "check_image",
            "CANDIDATE_MIN_SNR"]
@@ -59,9 +62,6 @@ RING_MIN_CNR = 6.0
 #: relative change, skin texture a small one).
 RING_MIN_WEBER = 0.12
 _MERGE_PLATEAUS = True
-#: A fitted blob with at least this probability hides smaller, weaker-contrast detections
-#: inside its ellipse (rim maxima and interior texture of big blobs).
-_CONTAINER_SCORE = 0.3
 #: Core levels of the alternative outlines fitted for candidates whose core was found lower
 #: (see :func:`analyse_blobs`).
 ALT_CORE_LEVELS: tuple[float, ...] = (0.75, 0.9)
@@ -206,10 +206,12 @@ class _Context:
         self.py = np.zeros(0, np.int64)
         self.level = np.zeros(0, np.int64)
 
-    def start(self, n: int, snr: np.ndarray, weber: np.ndarray, ref_level: float, gate: float) -> None:
+    def start(self, n: int, snr: np.ndarray, weber: np.ndarray, ref_level: float, gate: float,
+              pre_gate: float = 0.0) -> None:
         """Prepare the per-candidate records for ``n`` candidates (dense SNR, ring Weber
-        contrast), the image's reference grey level and the gate threshold (0: no gate)."""
-        self.snr, self.weber, self.ref_level, self.gate = snr, weber, ref_level, gate
+        contrast), the image's reference grey level and the gate and pre-gate thresholds (0:
+        none)."""
+        self.snr, self.weber, self.ref_level, self.gate, self.pre_gate = snr, weber, ref_level, gate, pre_gate
         self.gate_feat = np.zeros((n, len(blob_score.GATE_FEATURES)))
         self.gated = np.zeros(n, bool)
         self.state = np.full(n, -1, np.int64)
@@ -293,7 +295,8 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
 
     n = len(cand)
     ref_level = _reference_level(image)
-    ctx.start(n, cand.snr, weber, ref_level, blob_score.gate_threshold() if gate else 0.0)
+    ctx.start(n, cand.snr, weber, ref_level, blob_score.gate_threshold() if gate else 0.0,
+              blob_score.pre_gate_threshold() if gate else 0.0)
     out = {k: np.zeros(n) for k in _MEASURES}
     out["ring_weber"] = weber.astype(float)
     ok = np.zeros(n, bool)
@@ -301,11 +304,17 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
         radius = rep_radius.copy()
         level = ref.copy()
         sel = np.arange(n)
+        refit = np.zeros(0, np.int64)
+        # Rounds: candidates whose fit ran into its patch border are retried with twice the
+        # radius; blobs fitted on a coarse level that turn out small enough for a finer one
+        # are refitted there, in the next round's batches (each only once).
         for _ in range(3):
-            if len(sel) == 0:
+            if len(sel) == 0 and len(refit) == 0:
                 break
-            border = _fit(ctx, sel, px[sel], py[sel], level[sel], radius[sel], out, ok)
+            both = np.concatenate([sel, refit])
+            border = _fit(ctx, both, px[both], py[both], level[both], radius[both], out, ok)[:len(sel)]
             retry = sel[border & (radius[sel] * 2 <= max_radius * 1.6)]
+            refit = _finer(out, ok, sel[~border], level, px, py, radius)
             radius[retry] *= 2.0
             new_level = np.minimum(refine_level(radius[retry]), len(pyr) - 1)
             sh = new_level - level[retry]
@@ -313,17 +322,8 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
             py[retry] >>= np.maximum(sh, 0)
             level[retry] = new_level
             sel = retry
-        # Blobs fitted on a coarse level that turn out small enough for a finer one: refit.
-        fine = np.minimum(refine_level(out["major"]), level)
-        again = np.flatnonzero(ok & (fine < level))
-        if len(again):
-            k = fine[again]
-            s = 2.0 ** k
-            gx = np.rint(out["x"][again] / s).astype(np.int64)
-            gy = np.rint(out["y"][again] / s).astype(np.int64)
-            _fit(ctx, again, gx, gy, k, np.maximum(out["major"][again], 1.0), out, ok)
-            px[again], py[again], level[again] = gx, gy, k
-            radius[again] = np.maximum(out["major"][again], 1.0)
+        if len(refit):
+            _fit(ctx, refit, px[refit], py[refit], level[refit], radius[refit], out, ok)
     ctx_img = cv2.blur(signed, (3, 3))
     score, ok_s, feat = _score(cand, out, ok, min_radius, max_radius, ctx_img, polarity, ref_level)
     if n and ALT_CORE_LEVELS:
@@ -353,13 +353,28 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
                     out[k][better] = out2[k][j]
                 ok[better], ok_s[better], score[better], feat[better] = ok2[j], True, score2[j], feat2[j]
     ok = ok_s
-    ok &= _unique(out, score, ok)
+    ok &= unique_detections(out, score, ok)
     cx, cy = cand.full_xy()
     return BlobAnalysis(x=out["x"], y=out["y"], major=out["major"], minor=out["minor"],
                         angle=out["angle"], score=score, ok=ok, features=feat, measures=out,
                         cand_x=cx, cand_y=cy, snr=cand.snr, cand_weber=weber,
                         polarity=polarity, levels=levels, n_candidates=n_cand,
                         gate_features=ctx.gate_feat, gated=ctx.gated)
+
+
+def _finer(out: dict[str, np.ndarray], ok: np.ndarray, sel: np.ndarray, level: np.ndarray, px: np.ndarray,
+           py: np.ndarray, radius: np.ndarray) -> np.ndarray:
+    """Of the fitted candidates ``sel``, those fitted on a coarser pyramid level than their
+    size needs; their pixel, level and radius are set for the refit (in place). Returns them."""
+    fine = np.minimum(refine_level(out["major"][sel]), level[sel])
+    take = ok[sel] & (fine < level[sel])
+    again, k = sel[take], fine[take]
+    s = 2.0 ** k
+    px[again] = np.rint(out["x"][again] / s).astype(np.int64)
+    py[again] = np.rint(out["y"][again] / s).astype(np.int64)
+    level[again] = k
+    radius[again] = np.maximum(out["major"][again], 1.0)
+    return again
 
 
 def _reference_level(image: np.ndarray) -> float:
@@ -370,36 +385,6 @@ def _reference_level(image: np.ndarray) -> float:
     if info.size < 64:
         return 255.0
     return max(float(np.percentile(info, 95)), 8.0)
-
-
-def _climb(img: np.ndarray, x: np.ndarray, y: np.ndarray, steps: int = 16
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Move each point uphill on the 3x3 mean of ``img`` (one pixel per step, 8 neighbours)
-    until it reaches a local maximum or ``steps`` steps are done. Returns the end points and
-    the 3x3 mean there."""
-    H, W = img.shape
-    off = np.arange(-2, 3)
-    x, y = x.copy(), y.copy()
-    top = np.zeros(len(x))
-    moving = np.arange(len(x))
-    for _ in range(steps):
-        if len(moving) == 0:
-            break
-        rows = np.clip(y[moving, None] + off[None], 0, H - 1)
-        cols = np.clip(x[moving, None] + off[None], 0, W - 1)
-        win = img[rows[:, :, None], cols[:, None, :]].astype(np.float32)        # (m, 5, 5)
-        s = win[:, :-2] + win[:, 1:-1] + win[:, 2:]
-        box = (s[:, :, :-2] + s[:, :, 1:-1] + s[:, :, 2:]).reshape(len(moving), 9)
-        top[moving] = box[:, 4] / 9.0
-        # Prefer staying put on ties (plateaus).
-        box[:, 4] += 1e-3
-        arg = np.argmax(box, axis=1)
-        dy, dx = np.divmod(arg, 3)
-        step = arg != 4
-        x[moving] = np.clip(x[moving] + dx - 1, 0, W - 1)
-        y[moving] = np.clip(y[moving] + dy - 1, 0, H - 1)
-        moving = moving[step]
-    return x, y, top
 
 
 def _representatives(ctx: _Context, cand: Candidates, c75: np.ndarray
@@ -428,7 +413,7 @@ def _representatives(ctx: _Context, cand: Candidates, c75: np.ndarray
         sh = cand.level[sel] - k
         x = np.where(sh >= 0, cand.x[sel] << np.maximum(sh, 0), cand.x[sel] >> np.maximum(-sh, 0))
         y = np.where(sh >= 0, cand.y[sel] << np.maximum(sh, 0), cand.y[sel] >> np.maximum(-sh, 0))
-        px[sel], py[sel], top[sel] = _climb(ctx.pyr[int(k)], x, y)
+        px[sel], py[sel], top[sel] = climb(ctx.pyr[int(k)], x, y)
     # Same refinement level and same peak pixel: one group.
     key = (ref * (1 << 20) + py) * (1 << 20) + px
     _, label = np.unique(key, return_inverse=True)
@@ -474,12 +459,15 @@ def _representatives(ctx: _Context, cand: Candidates, c75: np.ndarray
 def _fit(ctx: _Context, sel: np.ndarray, px: np.ndarray, py: np.ndarray, level: np.ndarray,
          radius: np.ndarray, out: dict[str, np.ndarray], ok: np.ndarray) -> np.ndarray:
     """Fit blobs ``sel`` centred on pixels ``px, py`` of pyramid ``level`` with full-resolution
-    radius estimates ``radius``, writing into ``out``/``ok``. Candidates are fitted in one
-    stack per patch size (whatever their level); the level searches are kept in ``ctx`` for
-    the alternative outlines (:func:`_fit_alternatives`). Returns ``border (len(sel),)``."""
+    radius estimates ``radius``, writing into ``out``/``ok``. The level search runs in one
+    stack per patch size (whatever their level), the outlines in one batch per crop size
+    (:func:`~carapost.core.blob_outline.fit_outline_parts`); the level searches are kept in
+    ``ctx`` for the alternative outlines (:func:`_fit_alternatives`). Returns ``border
+    (len(sel),)``."""
     border = np.zeros(len(sel), bool)
     r_lv = radius / 2.0 ** level
     half = patch_half_size(r_lv)
+    searches = []
     for h in np.unique(half):
         h = int(h)
         groups = [np.flatnonzero((half == h) & (level == k)) for k in np.unique(level[half == h])]
@@ -490,19 +478,27 @@ def _fit(ctx: _Context, sel: np.ndarray, px: np.ndarray, py: np.ndarray, level: 
                               for g in groups])
         k = level[loc]
         noise = ctx.noise_of(k)
-        st = search_levels(pat, r_lv[loc], max_radius=ctx.max_radius / 2.0 ** k, pixel_noise=noise)
         idx = sel[loc]
-        # The gate: candidates with an isolated core whose pre-score is too low for the
-        # outline to make them probable are not fitted further (rejected).
+        pre = _pre_gate(ctx, idx, k, noise, r_lv[loc]) if ctx.gate > 0 and ctx.pre_gate > 0 else None
+        st = search_levels(pat, r_lv[loc], max_radius=ctx.max_radius / 2.0 ** k, pixel_noise=noise, pre_gate=pre)
+        # The pre-gate (before step 2) and the gate (after it): candidates whose pre-score is
+        # too low for the outline to make them probable are not fitted further (rejected).
+        ctx.gated[idx[st.pregated]] = True
         live = st.alive[st.has]
-        gf = _gate_features(ctx, st, idx[st.alive], k[st.alive], noise[st.alive], r_lv[loc][st.alive])
-        ctx.gate_feat[idx[st.alive]] = gf
+        a = st.alive
+        gf = _gate_features(ctx, idx[a], k[a], noise[a], r_lv[loc][a], st.peak, st.sig0, st.c0[:, 0],
+                            np.asarray(LEVELS)[st.k_found], st.area[np.arange(len(a)), st.k_found] * 4.0 ** k[a],
+                            st.fill)
+        ctx.gate_feat[idx[a]] = gf
         go = live
         if ctx.gate > 0 and len(live):
             pg = blob_score.gate_probability(gf[st.has])
             go = live[pg >= ctx.gate]
             ctx.gated[idx[live]] = pg < ctx.gate
-        fit_go = fit_outlines(st, go, polarity=ctx.polarity, min_core=np.zeros(len(go)))
+        searches.append((st, loc, k, noise, go))
+    fits = fit_outline_parts([(st, go, np.zeros(len(go))) for st, _, _, _, go in searches], polarity=ctx.polarity)
+    for (st, loc, k, noise, go), fit_go in zip(searches, fits):
+        idx = sel[loc]
         fit = PatchFit.empty(len(loc))
         for name in PatchFit.__dataclass_fields__:
             getattr(fit, name)[go] = getattr(fit_go, name)
@@ -516,21 +512,36 @@ def _fit(ctx: _Context, sel: np.ndarray, px: np.ndarray, py: np.ndarray, level: 
     return border
 
 
-def _gate_features(ctx: _Context, st: LevelSearch, idx: np.ndarray, k: np.ndarray, noise: np.ndarray,
-                   r_lv: np.ndarray) -> np.ndarray:
-    """Gate features (:data:`carapost.core.blob_score.GATE_FEATURES`) of the alive patches of a
-    level search: candidates ``idx`` on levels ``k`` with level pixel noise ``noise`` and
-    radius estimates ``r_lv`` (level px)."""
-    bg_signed = st.c0[:, 0].astype(float)
-    top = bg_signed + st.peak
+def _pre_gate(ctx: _Context, idx: np.ndarray, k: np.ndarray, noise: np.ndarray, r_lv: np.ndarray):
+    """The pre-gate of a stack of patches (candidates ``idx`` on levels ``k``, ...), for
+    :func:`~carapost.core.blob_fit.search_levels`: which of the patches with a peak go on to
+    the level search."""
+    def go(alive: np.ndarray, peak: np.ndarray, ring_noise: np.ndarray, plane: np.ndarray) -> np.ndarray:
+        gf = _gate_features(ctx, idx[alive], k[alive], noise[alive], r_lv[alive], peak, ring_noise, plane[:, 0])
+        return blob_score.pre_gate_probability(gf) >= ctx.pre_gate
+    return go
+
+
+def _gate_features(ctx: _Context, idx: np.ndarray, k: np.ndarray, noise: np.ndarray, r_lv: np.ndarray,
+                   peak: np.ndarray, ring_noise: np.ndarray, bg_signed: np.ndarray,
+                   found_level: np.ndarray | None = None, core_area: np.ndarray | None = None,
+                   fill: np.ndarray | None = None) -> np.ndarray:
+    """Gate features (:data:`carapost.core.blob_score.GATE_FEATURES`) of candidates ``idx`` on
+    levels ``k`` with level pixel noise ``noise`` and radius estimates ``r_lv`` (level px), from
+    their level search: the peak over the ring plane, the ring residual std and the ring plane
+    at the centre (signed grey levels), and after step 2 the found core level, the core's area
+    (full-resolution px^2) and fill (None before step 2, for the pre-gate: those columns are 0)."""
+    n = len(idx)
+    top = bg_signed + peak
     bg = bg_signed if ctx.polarity > 0 else 255.0 - bg_signed
     top_grey = top if ctx.polarity > 0 else 255.0 - top
     paint = top_grey / ctx.ref_level if ctx.polarity > 0 else 1.0 - top_grey / ctx.ref_level
-    core_area = st.area[np.arange(len(idx)), st.k_found] * 4.0 ** k
-    m = {"ring_weber": ctx.weber[idx], "peak": st.peak, "ring_noise": st.sig0, "pixel_noise": noise,
-         "found_level": np.asarray(LEVELS)[st.k_found], "core_area": core_area,
-         "fill": st.fill, "radius": r_lv * 2.0 ** k, "level": k, "background": bg, "paint": paint,
-         "polarity": np.full(len(idx), ctx.polarity)}
+    zero = np.zeros(n)
+    m = {"ring_weber": ctx.weber[idx], "peak": peak, "ring_noise": ring_noise, "pixel_noise": noise,
+         "found_level": zero if found_level is None else found_level,
+         "core_area": zero if core_area is None else core_area, "fill": zero if fill is None else fill,
+         "radius": r_lv * 2.0 ** k, "level": k, "background": bg, "paint": paint,
+         "polarity": np.full(n, ctx.polarity)}
     return blob_score.gate_features(ctx.snr[idx], m)
 
 
@@ -564,23 +575,15 @@ def _fit_alternatives(ctx: _Context, cands: np.ndarray, min_core: np.ndarray, ou
     ``min_core``, from their latest level search (no refitting of steps 1-2), into rows
     ``0..len(cands)-1`` of ``out``/``ok``."""
     st_id = ctx.state[cands]
-    half_of = np.array([st.half for st in ctx.searches] + [-1])
-    halves = half_of[st_id]                                  # -1 (not fitted) picks the last entry
-    for h in np.unique(halves[halves >= 0]):
-        loc = np.flatnonzero(halves == h)
-        parts, order = [], []
-        for sid in np.unique(st_id[loc]):
-            m = loc[st_id[loc] == sid]
-            parts.append((ctx.searches[int(sid)], ctx.row[cands[m]]))
-            order.append(m)
-        loc = np.concatenate(order)
-        st, rows = parts[0] if len(parts) == 1 else LevelSearch.gather(parts)
-        if len(parts) > 1:
-            loc, rows = loc[rows >= 0], rows[rows >= 0]
-        c = cands[loc]
-        fit = fit_outlines(st, rows, polarity=ctx.polarity, min_core=min_core[loc])
+    parts, order = [], []
+    for sid in np.unique(st_id[st_id >= 0]):
+        m = np.flatnonzero(st_id == sid)
+        parts.append((ctx.searches[int(sid)], ctx.row[cands[m]], min_core[m]))
+        order.append(m)
+    for m, fit in zip(order, fit_outline_parts(parts, polarity=ctx.polarity)):
+        c = cands[m]
         k = ctx.level[c]
-        _store(out, ok, loc, fit, ctx.px[c], ctx.py[c], k, ctx.noise_of(k), ctx.polarity)
+        _store(out, ok, m, fit, ctx.px[c], ctx.py[c], k, ctx.noise_of(k), ctx.polarity)
 
 
 def _score(cand, out: dict[str, np.ndarray], ok: np.ndarray, min_radius: float, max_radius: float,
@@ -605,59 +608,6 @@ def _score(cand, out: dict[str, np.ndarray], ok: np.ndarray, min_radius: float, 
     feat = blob_score.features(cand.snr, {**out, "polarity": np.full(len(cand), polarity)})
     score = np.where(ok, blob_score.probability(feat), 0.0)
     return score, ok, feat
-
-
-def _in_ellipse(px: np.ndarray, py: np.ndarray, out: dict[str, np.ndarray], j: np.ndarray,
-                margin: float) -> np.ndarray:
-    """Whether each point lies inside ellipse ``j`` grown by ``margin`` px."""
-    dx = px - out["x"][j]
-    dy = py - out["y"][j]
-    c, s = np.cos(out["angle"][j]), np.sin(out["angle"][j])
-    u = (dx * c + dy * s) / (out["major"][j] + margin)
-    v = (-dx * s + dy * c) / (out["minor"][j] + margin)
-    return u * u + v * v <= 1.0
-
-
-def _unique(out: dict[str, np.ndarray], score: np.ndarray, ok: np.ndarray) -> np.ndarray:
-    """Mask of fitted candidates kept after removing duplicates and nested detections.
-
-    Two detections closer than ``max(1, minor/2)`` px are one blob: the more probable stays.
-    A detection whose centre lies inside a bigger one's ellipse (grown by 0.5 px) is either a
-    dot on a darker band (it has at least half the bigger one's contrast and is more probable:
-    the bigger one is dropped) or a rim maximum / interior texture of the bigger blob (it is
-    dropped when the bigger one is plausible, probability >= ``_CONTAINER_SCORE``). The result does not depend on the user's
-    threshold, so raising the threshold only ever removes detections.
-    """
-    from scipy.spatial import cKDTree
-
-    keep = ok.copy()
-    idx = np.flatnonzero(ok)
-    if len(idx) < 2:
-        return keep
-    x, y, major, minor = out["x"], out["y"], out["major"], out["minor"]
-    pts = np.stack([x[idx], y[idx]], axis=1)
-    pairs = cKDTree(pts).query_pairs(r=float(major[idx].max()) + 0.5, output_type="ndarray")
-    if len(pairs) == 0:
-        return keep
-    a, b = idx[pairs[:, 0]], idx[pairs[:, 1]]
-    d = np.hypot(x[a] - x[b], y[a] - y[b])
-    # Near-duplicates: the lower score loses.
-    dup = d < np.maximum(1.0, 0.5 * np.minimum(minor[a], minor[b]))
-    better_a = (score[a] > score[b]) | ((score[a] == score[b]) & (a < b))
-    lose = np.where(better_a, b, a)[dup]
-    # Nested: a smaller blob inside a bigger one. If it stands out from the bigger one (at
-    # least half its contrast) and is more probable, it is a dot on a darker band (eyebrow,
-    # lip line) and the band goes; otherwise it is a ripple of the bigger blob and goes.
-    big_a = major[a] >= major[b]
-    big, small = np.where(big_a, a, b), np.where(big_a, b, a)
-    inside = ~dup & _in_ellipse(x[small], y[small], out, big, 0.5)
-    contrast = out["contrast"]
-    dot_on_band = inside & (contrast[small] >= 0.5 * contrast[big]) & (score[small] > score[big])
-    ripple = inside & ~dot_on_band & (score[big] >= _CONTAINER_SCORE)
-    keep[big[dot_on_band]] = False
-    keep[lose] = False
-    keep[small[ripple]] = False
-    return keep
 
 
 def _polarities(params: BlobParameters) -> list[tuple[int, float, float, float]]:

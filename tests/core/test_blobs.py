@@ -466,7 +466,8 @@ def test_level_search_shared_by_outlines_equals_separate_fits():
     """fit_outlines on a kept LevelSearch (the alternative outlines) gives what a full fit with
     the same forced core level gives."""
     from carapost.core.blob_candidates import signed_image
-    from carapost.core.blob_fit import fit_outlines, fit_patches, search_levels
+    from carapost.core.blob_fit import fit_patches, search_levels
+    from carapost.core.blob_outline import fit_outlines
     from carapost.core.blob_patches import extract_patches
 
     img, xy = _dots_on_dark_bands(1, 0.7)
@@ -488,6 +489,75 @@ def test_level_search_shared_by_outlines_equals_separate_fits():
             np.testing.assert_allclose(a, b, atol=1e-6)
             np.testing.assert_allclose(getattr(shared, name)[len(cx):], getattr(shared, name)[: len(cx)][::2],
                                        atol=1e-9)
+
+
+def test_pre_gate_rejects_before_the_level_search(monkeypatch):
+    """The pre-gate (before the flood) rejects texture candidates of a textured frame that
+    would otherwise reach the gate, and only improbable ones: the detections hardly change."""
+    from carapost.core import blob_fit, blob_score
+
+    assert blob_score.pre_gate_threshold() > 0
+    fr = render_frame(RenderConfig(texture=0.15, size=(480, 640), n_dots=60, polarity="both"), seed=12)
+    searched = []
+    orig = blob_fit.search_levels
+
+    def counting(pat, *a, **kw):
+        st = orig(pat, *a, **kw)
+        searched.append((len(st.alive), len(st.pregated)))
+        return st
+
+    monkeypatch.setattr("carapost.core.blobs.search_levels", counting)
+    n_pre = 0
+    for pol in (BLACK, WHITE):
+        searched.clear()
+        on = analyse_blobs(fr.image, pol, min_radius=1.5, max_radius=12)
+        n_pre += sum(p for _, p in searched)
+        with monkeypatch.context() as m:
+            m.setattr(blob_score, "pre_gate_threshold", lambda model=None: 0.0)
+            off = analyse_blobs(fr.image, pol, min_radius=1.5, max_radius=12)
+        assert on.gated.sum() >= off.gated.sum()
+        # What the pre-gate removed the classifier (without it) put below the default threshold.
+        assert int((off.score[on.gated & ~off.gated] > 0.4).sum()) <= 1
+        assert abs(len(on.table(0.4)["x"]) - len(off.table(0.4)["x"])) <= 1
+    assert n_pre >= 10, n_pre
+
+
+def test_outlines_on_cropped_windows_equal_whole_patches(monkeypatch):
+    """Steps 3-6 on windows cropped to each core's neighbourhood (and patches of several sizes
+    in one batch per window size) give the fits of the whole patches: on a textured frame
+    with dots, texture spots and merged pairs, every field agrees to float32 rounding."""
+    from carapost.core import blob_outline
+    from carapost.core.blob_candidates import signed_image
+    from carapost.core.blob_fit import search_levels
+    from carapost.core.blob_patches import extract_patches
+
+    fr = render_frame(RenderConfig(texture=0.12, size=(360, 480), n_dots=50, merged_pairs=4), seed=5)
+    sig = signed_image(fr.image, BLACK)
+    rng = np.random.default_rng(1)
+    pts = np.concatenate([fr.xy, rng.uniform([20, 20], [460, 340], (60, 2))])
+    cx, cy = np.rint(pts[:, 0]).astype(np.int64), np.rint(pts[:, 1]).astype(np.int64)
+    parts = []
+    for half, r in ((8, 2.0), (11, 4.0), (18, 8.0)):
+        st = search_levels(extract_patches(sig, cx, cy, half), np.full(len(cx), r),
+                           max_radius=np.full(len(cx), 14.0), pixel_noise=np.full(len(cx), 2.0))
+        sel = np.flatnonzero(st.has)
+        parts.append((st, st.alive[sel], np.where(np.arange(len(sel)) % 3 == 0, 0.9, 0.0)))
+    cropped = blob_outline.fit_outline_parts(parts, polarity=BLACK)
+    # Most windows are smaller than their patches (the 18 px patches hold 2-5 px dots).
+    from carapost.core.blob_fit import _thresholds
+
+    cores = [(st.L[r] >= _thresholds()[st.k_found[r]][:, None, None], st.half)
+             for st, r in ((st, st.rows(s)[1]) for st, s, _ in parts)]
+    need = np.concatenate([blob_outline.crop_need(core, half) for core, half in cores])
+    halves = np.concatenate([np.full(len(s), st.half) for st, s, _ in parts])
+    assert (blob_outline._batch_sizes(need, halves) < halves).sum() > 50
+    monkeypatch.setattr(blob_outline, "_CROP_MARGIN", 1000)           # every window = its whole patch
+    whole = [blob_outline.fit_outlines(st, sel, polarity=BLACK, min_core=mc) for st, sel, mc in parts]
+    for a, b in zip(cropped, whole):
+        assert a.ok.sum() > 10 and np.array_equal(a.ok, b.ok)
+        for name in ("x", "y", "major", "minor", "contrast", "background", "noise", "shape_residual",
+                     "asymmetry", "profile_rms", "open", "kept", "area", "core_level"):
+            np.testing.assert_allclose(getattr(a, name), getattr(b, name), rtol=1e-4, atol=1e-4, err_msg=name)
 
 
 def test_gate_drops_only_improbable_candidates():
