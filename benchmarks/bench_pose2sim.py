@@ -33,9 +33,41 @@ poses, three views, 3 px) and pooled into one bundle of the four static cameras 
 robust loss), and frame 0, held out, is initialized again with the bundled poses
 (``pooled``).
 
+With ``--static``, the calibration is checked against the static scene (``static_scene``):
+
+* ``video_vs_extrinsics_image``: per camera, the background (median of frames 0, 10, ..., 90)
+  registered on ``calibration/extrinsics/camNN_ext.png`` (SIFT, ratio 0.7, affine RANSAC at
+  1.5 px): scale and shift (ext = scale * video + shift) and inliers. A camera moved between
+  calibration and capture, or a resized video, shows here;
+* ``bolts``: the hand-picked static landmarks :data:`pose2sim_case.STATIC_BOLTS` (bolt heads
+  on the walkway, +-2 px): per pair their symmetric epipolar distances with the file's poses
+  and, triangulated from all views, each camera's reprojection errors; in raw video pixels and
+  with cam01/cam02's letterbox undone (:func:`pose2sim_case.video_to_calibration`);
+* ``guided_sift``: SIFT features of the backgrounds matched per pair within 60 px of the
+  file's epipolar lines (ratio 0.8, mutual): matches, their median epipolar distance and the
+  fraction within 2 px (chance: 2/60 = 0.033), and the inliers of an essential matrix fitted
+  to them (RANSAC at 1 px) with the file's median distance over those;
+* ``auto_letterbox``: frame 0's automatic initialization (white blobs) with cam01/cam02's
+  detections mapped by :func:`pose2sim_case.video_to_calibration`;
+* ``sync_scan``: per camera pair, :func:`carapost.core.sync_offset.epipolar_offset_scores`
+  of the white-blob detections near the person (frames 15, 17, ..., 43 of camera a against
+  frames ``f + k`` of camera b, ``k = -10..10``, 2 px), with the file's poses: counts per
+  offset, best offset (and sub-frame), contrast (peak over median). A pair whose poses are
+  right and whose videos are in sync peaks at 0; a time offset moves the peak; wrong poses
+  leave no peak;
+* ``refined``: :func:`carapost.core.scene_refine.refine_poses` over the six static landmarks
+  :data:`pose2sim_case.STATIC_LANDMARKS` (bolts and cone tops), cam02 fixed, and with cam01
+  and cam02 both fixed: residuals before and after, each landmark left out in turn
+  (``leave_one_out``: its median reprojection error with the file's poses and with poses
+  refined without it), cameras turned / moved, the two spine markers' cam03-cam04 epipolar
+  distances, the sync scan again and frame 0's automatic initialization with the refined
+  poses.
+
 CPU times are process times. Prints one JSON line.
 
-    .venv/bin/python benchmarks/bench_pose2sim.py [--pooled]
+    .venv/bin/python benchmarks/bench_pose2sim.py [--pooled] [--static] [--static-only]
+
+(``--static-only``: only the ``static_scene`` section, not the detector settings.)
 """
 
 from __future__ import annotations
@@ -53,12 +85,16 @@ sys.path.insert(0, str(ROOT))
 
 from _common import emit  # noqa: E402
 from conftest import real_data_dir  # noqa: E402
-from pose2sim_case import (P2S_INIT, auto_kwargs, detect, near_person, on_body,  # noqa: E402
-                           skeleton_points)
+from pose2sim_case import (CAM03_MARKERS_FRAME0, CAM04_SPINE_FRAME0, LETTERBOXED, P2S_INIT,  # noqa: E402
+                           STATIC_BOLTS, STATIC_LANDMARKS, auto_kwargs, detect, near_person, on_body,
+                           skeleton_points, video_to_calibration)
 
 from carapost.core.auto_init import auto_initialize  # noqa: E402
 from carapost.core.bundle import bundle_adjust  # noqa: E402
-from carapost.core.camera import camera_centre  # noqa: E402
+from carapost.core.camera import camera_centre, project, symmetric_epipolar_distance  # noqa: E402
+from carapost.core.scene_refine import refine_poses  # noqa: E402
+from carapost.core.sync_offset import epipolar_offset_scores  # noqa: E402
+from carapost.core.triangulate import triangulate  # noqa: E402
 from carapost.core.epipolar_match import (detection_arrays, gather_xy, pair_candidates,  # noqa: E402
                                           triangulate_points)
 from carapost.io.calibration import load_calibration  # noqa: E402
@@ -170,7 +206,7 @@ def _auto_summary(dets: list, intr: list, R: np.ndarray, t: np.ndarray, skel: np
             "null_points": _null_points(dets, intr, R, t, min_views)}
 
 
-def run(root: Path, pooled: bool = False) -> dict:
+def run(root: Path, pooled: bool = False, static: bool = False, settings: bool = True) -> dict:
     cal = load_calibration(root / "calibration" / "Calib.qca.txt")
     R, t = cal.poses(1)
     R, t = R[0], t[0]
@@ -178,7 +214,7 @@ def run(root: Path, pooled: bool = False) -> dict:
     images = [open_source(root / "videos" / f"{n}.mp4").read(0) for n in cal.names]
     skel = skeleton_points(root, 0)
     out: dict = {"frame": 0, "cameras": cal.names}
-    for name, (detector, overrides) in SETTINGS.items():
+    for name, (detector, overrides) in (SETTINGS if settings else {}).items():
         t0 = time.process_time()
         dets = [detect(img, detector, **overrides) for img in images]
         t_det = time.process_time() - t0
@@ -208,6 +244,8 @@ def run(root: Path, pooled: bool = False) -> dict:
                            "untracked_points": int((multi & ~tracked).sum())}
     if pooled:
         out["pooled"] = _pooled(root, cal, intr, R, t, skel)
+    if static:
+        out["static_scene"] = _static_scene(root, cal, intr, R, t, skel)
     return out
 
 
@@ -249,12 +287,193 @@ def _pooled(root: Path, cal, intr: list, R: np.ndarray, t: np.ndarray, skel: np.
     return out
 
 
+#: Frames whose median is a video's background (the person moves enough to vanish from it).
+BACKGROUND_FRAMES = tuple(range(0, 100, 10))
+#: Band of the guided static matching, px.
+GUIDED_BAND_PX = 60.0
+
+
+def _background(source) -> np.ndarray:
+    """Temporal median of :data:`BACKGROUND_FRAMES`, (H, W) uint8."""
+    frames = np.stack([np.asarray(source.read(f)) for f in BACKGROUND_FRAMES])
+    if frames.ndim == 4:
+        frames = frames.mean(axis=-1)
+    return np.median(frames, axis=0).astype(np.uint8)
+
+
+def _register(video_bg: np.ndarray, ext: np.ndarray) -> dict:
+    """Affine map video -> extrinsics image from SIFT matches (RANSAC 1.5 px)."""
+    import cv2
+    sift = cv2.SIFT_create(nfeatures=8000)
+    kb, db = sift.detectAndCompute(video_bg, None)
+    ke, de = sift.detectAndCompute(ext, None)
+    m = [x[0] for x in cv2.BFMatcher().knnMatch(db, de, k=2) if len(x) == 2 and x[0].distance < 0.7 * x[1].distance]
+    pb = np.array([kb[x.queryIdx].pt for x in m])
+    pe = np.array([ke[x.trainIdx].pt for x in m])
+    A, inl = cv2.estimateAffine2D(pb, pe, ransacReprojThreshold=1.5)
+    inl = inl.ravel().astype(bool)
+    r = np.linalg.norm(pb[inl] @ A[:, :2].T + A[:, 2] - pe[inl], axis=1)
+    return {"size": list(video_bg.shape[::-1]), "scale": [round(float(A[0, 0]), 5), round(float(A[1, 1]), 5)],
+            "shift_px": [round(float(v), 2) for v in A[:, 2]], "matches": len(m), "inliers": int(inl.sum()),
+            "median_residual_px": round(float(np.median(r)), 3)}
+
+
+def _bolts(intr: list, R: np.ndarray, t: np.ndarray, letterbox: bool) -> dict:
+    xy = STATIC_BOLTS.copy()
+    if letterbox:
+        for c in range(xy.shape[1]):
+            xy[:, c] = video_to_calibration(xy[:, c], c)
+    C = xy.shape[1]
+    pairs = {}
+    for a in range(C):
+        for b in range(a + 1, C):
+            d = symmetric_epipolar_distance(xy[:, a], xy[:, b], intr[a], R[a], t[a], intr[b], R[b], t[b])
+            pairs[f"{a + 1}-{b + 1}"] = [None if not np.isfinite(v) else round(float(v), 1) for v in d]
+    X = triangulate(xy, intr, R, t).xyz
+    err = np.stack([np.linalg.norm(project(X, intr[c], R[c], t[c]) - xy[:, c], axis=1) for c in range(C)], 1)
+    return {"epipolar_px": pairs, "xyz_mm": np.round(X).astype(int).tolist(),
+            "reprojection_px_per_camera": [[None if not np.isfinite(v) else round(float(v), 1) for v in err[:, c]]
+                                           for c in range(C)],
+            "median_reprojection_px": _median(err.ravel())}
+
+
+def _guided_sift(bgs: list, cal, intr: list, R: np.ndarray, t: np.ndarray) -> dict:
+    """Background SIFT matches per pair within :data:`GUIDED_BAND_PX` of the file's epipolar lines."""
+    import cv2
+    sift = cv2.SIFT_create(nfeatures=6000, contrastThreshold=0.01)
+    kd = [sift.detectAndCompute(b, None) for b in bgs]
+    pts = [np.array([k.pt for k in kk[0]]) for kk in kd]
+    des = [kk[1].astype(np.float32) for kk in kd]
+
+    def normalised(xy: np.ndarray, c: int) -> np.ndarray:
+        dist = cal.cameras[c].extra["opencv_distortion"]["coefficients"]
+        i = intr[c]
+        K = np.array([[i.focal_length, 0, i.principal_point[0]], [0, i.focal_length / i.aspect, i.principal_point[1]],
+                      [0, 0, 1]])
+        return cv2.undistortPoints(xy.reshape(-1, 1, 2), K, np.asarray(dist, float)).reshape(-1, 2)
+    out = {}
+    for a in range(len(bgs)):
+        for b in range(a + 1, len(bgs)):
+            D = symmetric_epipolar_distance(pts[a][:, None], pts[b][None], intr[a], R[a], t[a], intr[b], R[b], t[b])
+            sq = (des[a] ** 2).sum(1)[:, None] + (des[b] ** 2).sum(1)[None] - 2 * des[a] @ des[b].T
+            dd = np.sqrt(np.maximum(0, sq))
+            dd[D > GUIDED_BAND_PX] = np.inf
+            j = np.argmin(dd, 1)
+            s2 = np.sort(dd, 1)[:, :2]
+            mutual = np.argmin(dd, 0)[j] == np.arange(len(j))
+            ia = np.flatnonzero(np.isfinite(s2[:, 0]) & (s2[:, 0] < 0.8 * s2[:, 1]) & mutual)
+            ib = j[ia]
+            d = D[ia, ib]
+            row = {"matches": len(ia), "median_epipolar_px": _median(d), "within_2px": round(float(np.mean(d < 2)), 3)}
+            if len(ia) >= 8:
+                E, inl = cv2.findEssentialMat(normalised(pts[a][ia], a), normalised(pts[b][ib], b), np.eye(3),
+                                              cv2.RANSAC, 0.999, 1.0 / intr[a].focal_length)
+                inl = inl.ravel().astype(bool) if inl is not None else np.zeros(len(ia), bool)
+                row.update(essential_inliers=int(inl.sum()), file_median_px_on_inliers=_median(d[inl]))
+            out[f"{a + 1}-{b + 1}"] = row
+    return out
+
+
+def _static_scene(root: Path, cal, intr: list, R: np.ndarray, t: np.ndarray, skel: np.ndarray) -> dict:
+    """The file's poses against the static scene (see the module docstring, ``--static``)."""
+    import cv2
+    sources = [open_source(root / "videos" / f"{n}.mp4") for n in cal.names]
+    bgs = [_background(s) for s in sources]
+    reg = {}
+    for c, n in enumerate(cal.names):
+        ext = cv2.imread(str(root / "calibration" / "extrinsics" / f"{n}_ext.png"), cv2.IMREAD_GRAYSCALE)
+        reg[n] = _register(bgs[c], ext) | {"extrinsics_image_size": list(ext.shape[::-1])}
+    out: dict = {"video_vs_extrinsics_image": reg,
+                 "bolts": {"raw": _bolts(intr, R, t, False), "letterbox_undone": _bolts(intr, R, t, True)}}
+    t0 = time.process_time()
+    out["guided_sift"] = _guided_sift(bgs, cal, intr, R, t)
+    out["guided_sift_cpu_s"] = round(time.process_time() - t0, 1)
+    dets = [detect(s.read(0), "blobs") for s in sources]
+    for c in range(len(dets)):
+        if LETTERBOXED[c]:
+            xy = video_to_calibration(np.c_[dets[c]["x"], dets[c]["y"]], c)
+            dets[c] = dict(dets[c])
+            dets[c]["x"], dets[c]["y"] = xy[:, 0].astype(dets[c]["x"].dtype), xy[:, 1].astype(dets[c]["y"].dtype)
+    res, err = _auto(dets, intr, R, t, 3)
+    out["auto_letterbox"] = {"points": res.n_points, "on_person": int(on_body(res.xyz, skel).sum()),
+                             "median_reprojection_px": _median(err.ravel())}
+    t0 = time.process_time()
+    near = _near_person_tracks(root, sources, intr, R, t)
+    out["sync_scan_detect_cpu_s"] = round(time.process_time() - t0, 1)
+    out["sync_scan"] = _sync_scan(near, intr, R, t)
+    dets0 = [detect(s.read(0), "blobs") for s in sources]
+    out["refined"] = {}
+    for name, fixed in (("cam02_fixed", 1), ("cam01_cam02_fixed", (0, 1))):
+        out["refined"][name] = _refined(near, dets0, intr, R, t, skel, fixed)
+    return out
+
+
+#: Frames of camera a in the sync scan, and the offsets tried.
+SYNC_FRAMES = tuple(range(15, 45, 2))
+SYNC_OFFSETS = tuple(range(-10, 11))
+
+
+def _near_person_tracks(root: Path, sources: list, intr: list, R: np.ndarray, t: np.ndarray) -> list:
+    """White-blob detections near the person (file poses), per camera and frame 0..54 (n, 2)."""
+    last = max(SYNC_FRAMES) + max(SYNC_OFFSETS) + 1
+    out = []
+    for c, s in enumerate(sources):
+        frames = []
+        for f in range(last):
+            d = detect(s.read(f), "blobs")
+            xy = np.c_[d["x"], d["y"]].astype(float)
+            frames.append(xy[near_person(xy, skeleton_points(root, f), intr[c], R[c], t[c])])
+        out.append(frames)
+    return out
+
+
+def _sync_scan(near: list, intr: list, R: np.ndarray, t: np.ndarray) -> dict:
+    out = {}
+    for a in range(len(near)):
+        for b in range(a + 1, len(near)):
+            s = epipolar_offset_scores(near[a], near[b], intr[a], R[a], t[a], intr[b], R[b], t[b],
+                                       offsets=SYNC_OFFSETS, frames=SYNC_FRAMES)
+            out[f"{a + 1}-{b + 1}"] = {"counts": s.counts.tolist(), "best": s.best,
+                                       "subframe": round(s.subframe, 2), "contrast": round(s.contrast, 2)}
+    return out
+
+
+def _refined(near: list, dets0: list, intr: list, R: np.ndarray, t: np.ndarray, skel: np.ndarray, fixed) -> dict:
+    xy = STATIC_LANDMARKS
+    r = refine_poses(xy, intr, R, t, fixed=fixed)
+    loo = []
+    for k in range(len(xy)):
+        keep = np.arange(len(xy)) != k
+        rk = refine_poses(xy[keep], intr, R, t, fixed=fixed)
+        row = []
+        for Rk, tk in ((R, t), (rk.R, rk.t)):
+            X = triangulate(xy[k:k + 1], intr, Rk, tk).xyz
+            row.append(_median(np.array([np.linalg.norm(project(X, intr[c], Rk[c], tk[c]) - xy[k:k + 1, c])
+                                         for c in range(len(intr))])))
+        loo.append(row)
+    spine = symmetric_epipolar_distance(CAM03_MARKERS_FRAME0[:2], CAM04_SPINE_FRAME0, intr[2], r.R[2], r.t[2],
+                                        intr[3], r.R[3], r.t[3])
+    auto = _auto_summary(dets0, intr, r.R, r.t, skel, 3)
+    return {"median_residual_px_before": _median(r.initial_residuals.ravel()),
+            "median_residual_px_after": _median(r.residuals.ravel()),
+            "max_residual_px_after": round(float(np.nanmax(r.residuals)), 2),
+            "leave_one_out_file_vs_refined_px": loo,
+            "camera_turned_deg": [round(float(v), 2) for v in r.turned_deg],
+            "camera_moved_mm": [round(float(v), 1) for v in r.moved_mm],
+            "spine_cam03_cam04_epipolar_px": [round(float(v), 1) for v in spine],
+            "sync_scan": _sync_scan(near, intr, r.R, r.t),
+            "frame0_auto": {k: auto[k] for k in ("points", "points_by_views", "on_person", "median_reprojection_px",
+                                                  "null_points")}}
+
+
 def main() -> None:
     base = real_data_dir()
     if base is None or not (base / "pose2sim-demo").is_dir():
         emit("pose2sim", skipped="real data not found (set CARAPOST_REAL_DATA)")
         return
-    emit("pose2sim", **run(base / "pose2sim-demo", pooled="--pooled" in sys.argv[1:]))
+    args = sys.argv[1:]
+    emit("pose2sim", **run(base / "pose2sim-demo", pooled="--pooled" in args, static="--static" in args,
+                           settings="--static-only" not in args))
 
 
 if __name__ == "__main__":

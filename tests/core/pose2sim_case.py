@@ -44,6 +44,45 @@ CAM03_MARKERS_FRAME0 = np.array([(695.0, 692.5), (689.0, 737.5), (552.5, 800.0),
 #: picked the same way.
 CAM04_SPINE_FRAME0 = np.array([(277.0, 788.0), (293.0, 832.0)])
 
+#: Static scene landmarks picked by eye on 3x crops of each video's background (the median of
+#: frames 0, 10, ..., 90, which removes the person): the bolt heads of four metal plates on the
+#: walkway's edges, (landmark, camera, 2) raw video px (+-2 px), NaN where not picked. They
+#: triangulate on the walkway top (z = -17..16 mm) 1.1-1.2 m apart. Identified across views by
+#: their epipolar distances (each assignment unique; the others > 60 px).
+STATIC_BOLTS = np.array([
+    [(787.0, 1277.0), (802.0, 1267.0), (141.0, 1267.0), (487.0, 1133.0)],
+    [(65.0, 1057.0), (414.0, 1029.0), (910.0, 1227.0), (885.0, 1432.0)],
+    [(280.0, 1359.0), (283.0, 1207.0), (np.nan, np.nan), (932.0, 1055.0)],
+    [(510.0, 1035.0), (np.nan, np.nan), (517.0, 1501.0), (324.0, 1464.0)],
+])
+#: The two cones' top rims at the walkway's end (the one with a cable first), (2, camera, 2)
+#: raw video px: the centre of the rim's ellipse, picked by eye on 4x crops (+-3 px). They
+#: triangulate 640 mm apart, 190 mm above the walkway.
+STATIC_CONE_TOPS = np.array([
+    [(661.0, 1522.0), (270.5, 1318.5), (262.0, 969.5), (830.5, 859.5)],
+    [(942.0, 1427.0), (631.0, 1343.5), (60.0, 1060.0), (610.0, 919.5)],
+])
+#: All static landmarks, (6, camera, 2) raw video px.
+STATIC_LANDMARKS = np.concatenate([STATIC_BOLTS, STATIC_CONE_TOPS])
+#: The calibration's image is 1088 x 1920 (as are ``calibration/extrinsics/camNN_ext.png``);
+#: cam01 and cam02's videos are 1080 x 1920: the 1088-wide frame scaled by 1080/1088 and
+#: letterboxed (7 px top and bottom). Registering each video's background on its extrinsics
+#: image (SIFT, homography) measures ext = 1.0074 * video - (0.0, 7.2) px for both, and the
+#: identity (< 0.4 px) for cam03/cam04.
+LETTERBOXED = (True, True, False, False)
+CALIBRATION_SIZE = (1088, 1920)
+
+
+def video_to_calibration(xy: np.ndarray, camera: int) -> np.ndarray:
+    """Raw video px ``(n, 2)`` of ``camera`` (0-based) to the calibration's image px (the
+    letterbox of :data:`LETTERBOXED` undone: scale 1088/1080, 7.1 px top margin removed)."""
+    xy = np.asarray(xy, float)
+    if not LETTERBOXED[camera]:
+        return xy.copy()
+    s = CALIBRATION_SIZE[0] / 1080.0
+    top = (CALIBRATION_SIZE[1] - CALIBRATION_SIZE[1] / s) / 2.0
+    return np.c_[xy[..., 0] * s, (xy[..., 1] - top) * s].reshape(xy.shape)
+
 
 def detect(image: np.ndarray, detector: str = "blobs", **overrides) -> dict:
     """Detections of one frame: ``"blobs"`` (white blobs, :data:`P2S_BLOBS`) or ``"spheres"``

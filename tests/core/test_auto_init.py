@@ -252,3 +252,67 @@ def test_pose2sim_demo_spheres(real_data: Path):
     da = [detection_arrays(d, c) for c, d in enumerate(dets)]
     _, err = triangulate_points(res.det_index, da, cal.intrinsics, R, t)
     assert np.nanmax(err) <= auto_kwargs()["max_reprojection_px"] + 1e-6
+
+
+def test_pose2sim_static_scene_against_file_poses(real_data: Path):
+    """The file's poses against the static scene: four bolt heads on the walkway, picked by eye
+    in each video's background (``pose2sim_case.STATIC_BOLTS``, +-2 px), triangulate on the
+    walkway top but reproject 5-15 px off (median 9.7 px) with the file's poses: the
+    calibration does not fit these videos at the ~1 px the automatic initialization needs, for
+    points that do not move (so a time offset cannot be the cause). Only cam02-cam04 agree
+    (epipolar distances 0.2-1.8 px). Undoing cam01/cam02's letterbox (measured by registering
+    the videos on the extrinsics images) does not change that (median 9.8 px)."""
+    root = real_data / POSE2SIM
+    if not root.is_dir():
+        pytest.skip("Pose2Sim demo not available")
+    from carapost.core.camera import project, symmetric_epipolar_distance
+    from carapost.core.triangulate import triangulate
+    from carapost.io.calibration import load_calibration
+
+    from pose2sim_case import STATIC_BOLTS, video_to_calibration
+
+    cal = load_calibration(root / "calibration" / "Calib.qca.txt")
+    R, t = cal.poses(1)
+    R, t, intr = R[0], t[0], cal.intrinsics
+    for letterbox in (False, True):
+        xy = STATIC_BOLTS.copy()
+        if letterbox:
+            for c in range(4):
+                xy[:, c] = video_to_calibration(xy[:, c], c)
+        X = triangulate(xy, intr, R, t).xyz
+        assert np.all(np.abs(X[:, 2]) < 30.0), X  # on the walkway top (z = 0 in the file's frame)
+        err = np.stack([np.linalg.norm(project(X, intr[c], R[c], t[c]) - xy[:, c], axis=1) for c in range(4)], 1)
+        assert 7.0 < np.nanmedian(err) < 12.0, np.nanmedian(err)
+        d34 = symmetric_epipolar_distance(xy[:, 2], xy[:, 3], intr[2], R[2], t[2], intr[3], R[3], t[3])
+        assert np.nanmin(d34) > 10.0, d34  # the back pair: 11.9-18.4 px
+    d24 = symmetric_epipolar_distance(STATIC_BOLTS[:, 1], STATIC_BOLTS[:, 3], intr[1], R[1], t[1], intr[3], R[3], t[3])
+    assert np.nanmax(d24) < 2.5, d24
+    # the letterbox mapping: the right edge and the bottom of cam01's picture land on the calibration's
+    assert np.allclose(video_to_calibration(np.array([[1080.0, 1920.0 - 7.0588]]), 0), [[1088.0, 1920.0]], atol=0.05)
+
+
+def test_pose2sim_scene_refinement_moves_back_cameras(real_data: Path):
+    """Refining cam03/cam04 (cam01, cam02 kept) on the six static landmarks (bolts, cone tops)
+    turns them by 0.7 and 1.2 degrees and moves them by ~150 mm; the two spine markers, not
+    used in the fit, then lie 2.2 px off each other's epipolar lines instead of 18 px. Held out
+    in turn, a landmark reprojects 2.3-5.9 px off with the refined poses (5.4-11.9 px with the
+    file's): six hand-picked landmarks correct the poses only roughly."""
+    root = real_data / POSE2SIM
+    if not root.is_dir():
+        pytest.skip("Pose2Sim demo not available")
+    from carapost.core.camera import symmetric_epipolar_distance
+    from carapost.core.scene_refine import refine_poses
+    from carapost.io.calibration import load_calibration
+
+    from pose2sim_case import CAM03_MARKERS_FRAME0, CAM04_SPINE_FRAME0, STATIC_LANDMARKS
+
+    cal = load_calibration(root / "calibration" / "Calib.qca.txt")
+    R, t = cal.poses(1)
+    R, t, intr = R[0], t[0], cal.intrinsics
+    r = refine_poses(STATIC_LANDMARKS, intr, R, t, fixed=(0, 1))
+    assert np.nanmedian(r.initial_residuals) > 8.0 and np.nanmedian(r.residuals) < 1.5
+    assert np.all((r.turned_deg[2:] > 0.4) & (r.turned_deg[2:] < 2.0)), r.turned_deg
+    assert np.all((r.moved_mm[2:] > 80) & (r.moved_mm[2:] < 250)), r.moved_mm
+    spine = [symmetric_epipolar_distance(CAM03_MARKERS_FRAME0[:2], CAM04_SPINE_FRAME0, intr[2], Rk[2], tk[2],
+                                         intr[3], Rk[3], tk[3]) for Rk, tk in ((R, t), (r.R, r.t))]
+    assert np.all(spine[0] > 15.0) and np.all(spine[1] < 4.0), spine
