@@ -22,6 +22,8 @@ __all__ = ["SurfaceBuilder", "build_surface", "rest_surface"]
 
 _CAVITY = 6.0  # depth of the open mouth behind the lips, mm
 _TEETH = 2.0  # the upper teeth show this far (mm) below the upper lip
+_UNCONVERGED_MM = 0.5  # inversion residual (mm, before the last step) that earns more Newton steps
+_EXTRA_ITERATIONS = 6
 
 
 def _grid(spacing: float) -> tuple[np.ndarray, np.ndarray, tuple[float, float]]:
@@ -223,6 +225,18 @@ class SurfaceBuilder:
         r1 = int(np.ceil((lip_line(MOUTH_HALF_WIDTH) + 12.0 - v0) / sp)) + 1
         return (slice(max(r0, win[0].start), min(r1, win[0].stop)), slice(max(c0, win[1].start), min(c1, win[1].stop)))
 
+    def _over_a_blink(self, state: np.ndarray, win: tuple[slice, slice]) -> np.ndarray:
+        """Flat bool mask of the nodes of ``win`` in the box of an active blink channel."""
+        rows = np.arange(win[0].start, win[0].stop)[:, None]
+        cols = np.arange(win[1].start, win[1].stop)[None, :]
+        near = np.zeros((rows.shape[0], cols.shape[1]), bool)
+        for name in ("blink_L", "blink_R"):
+            k = CHANNELS.index(name)
+            if state[k] > 0:
+                r0, r1, c0, c1 = self.boxes[k]
+                near |= (rows >= r0) & (rows < r1) & (cols >= c0) & (cols < c1)
+        return near.ravel()
+
     def _invert(self, state: np.ndarray, win: tuple[slice, slice], lip: str | None,
                 iterations: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Height and material coordinates at the current-space grid nodes of ``win`` (flat)."""
@@ -255,10 +269,12 @@ class SurfaceBuilder:
         a, _ = lookup(x, y)
         uu = 2.0 * x - a[:, 0]
         vv = 2.0 * y - a[:, 1]
-        for _ in range(iterations):
-            a, b = lookup(uu, vv)
-            rx = a[:, 0] - x
-            ry = a[:, 1] - y
+
+        def newton(idx: np.ndarray | slice) -> np.ndarray:
+            """One damped Newton step for the nodes ``idx``; returns their residual before it (mm)."""
+            a, b = lookup(uu[idx], vv[idx])
+            rx = a[:, 0] - x[idx]
+            ry = a[:, 1] - y[idx]
             j11, j12, j21, j22 = a[:, 2], a[:, 3], b[:, 0], b[:, 1]
             det = j11 * j22 - j12 * j21
             det = np.where(np.abs(det) < 1e-3, np.float32(1e-3), det)
@@ -266,8 +282,21 @@ class SurfaceBuilder:
             dv = (j11 * ry - j21 * rx) / det
             # damp wild steps (where the map is nearly singular, e.g. a closed eye)
             f = np.minimum(np.float32(1.0), np.float32(4.0) / np.maximum(np.hypot(du, dv), np.float32(1e-12)))
-            uu -= f * du
-            vv -= f * dv
+            uu[idx] -= f * du
+            vv[idx] -= f * dv
+            return np.hypot(rx, ry)
+
+        res = np.zeros_like(x)
+        for _ in range(iterations):
+            res = newton(slice(None))
+        # over a closing eye the skin moves ~9 mm and nodes whose first guess was far off (just
+        # above the lid) need more damped steps: a few more for them only (elsewhere, e.g. in
+        # the parted lips, nodes without a preimage are left as they were)
+        idx = np.flatnonzero((res > _UNCONVERGED_MM) & self._over_a_blink(state, win))
+        for _ in range(_EXTRA_ITERATIONS):
+            if idx.size == 0:
+                break
+            idx = idx[newton(idx) > _UNCONVERGED_MM]
         _, b = lookup(uu, vv)
         return b[:, 2], uu, vv
 

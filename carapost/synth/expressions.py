@@ -8,7 +8,8 @@ position in the head frame, see :mod:`carapost.synth.face`):
 * ``pucker`` pushes the lips forward and draws the corners in;
 * ``puff`` pushes the lower cheeks outwards;
 * ``brow_L/R`` lift the brows and forehead;
-* ``blink_L/R`` lower the upper lid over the eye (the eye opening is squeezed to a slit);
+* ``blink_L/R`` lower the upper lid over the eye (the eye opening is squeezed to a slit); the
+  skin over the tarsal plate moves with the lid margin, the skin above it stretches;
 * ``jaw`` rotates the lower face (below the lip line) about a jaw axis behind the cheeks, up
   to 15 degrees: the lips part and the dark mouth (upper teeth showing) opens between them.
 
@@ -25,7 +26,10 @@ __all__ = [
     "CHANNELS",
     "JAW_MAX_DEG",
     "JAW_PIVOT",
+    "PRESEPTAL_FADE_MM",
+    "TARSAL_HEIGHT_MM",
     "Deformer",
+    "blink_displacement",
     "deform",
     "eye_opening",
     "jaw_weight",
@@ -42,6 +46,20 @@ JAW_PIVOT = (0.0, -30.0, -85.0)
 _CH = {name: i for i, name in enumerate(CHANNELS)}
 #: Upper and lower lid margins above / below the eye centre at the middle of the eye, mm.
 LID_UP, LID_LO = 5.5, 4.0
+#: Height of the upper tarsal plate above the lid margin at the middle of the eye, mm (in
+#: ``v``, the frontal projection; 8.65 mm along the synthetic skin, which slopes back over the
+#: eyeball): the skin over it follows the margin in a blink. The adult upper tarsus is
+#: 9.3 +- 0.9 mm high centrally in Korean cadaver lids and 10-12 mm in Caucasians ("Shape and
+#: height of tarsal plates", 54 lids; Gray's Anatomy, 41st ed., says about 10 mm) and tapers
+#: towards the canthi (to about 70 % a quarter of the lid from either end): here it follows the
+#: lid margin's profile (87 % there). The lower end of the range, because of the brow (below).
+TARSAL_HEIGHT_MM = 8.0
+#: Height above the tarsal plate over which the blink displacement fades out, mm (middle of the
+#: eye): the preseptal skin, which in a real open eye is tucked into the lid fold and unfolds in
+#: a blink, here stretches (up to 5x). The synthetic brow sits low (its markers 14.4 mm above
+#: the margin, its hair from 11.8 mm; about 20 mm in real faces): the fade ends below both,
+#: so brows and forehead do not move in a blink.
+PRESEPTAL_FADE_MM = 3.5
 
 
 def _g(x: np.ndarray, y: np.ndarray, sx: float, sy: float) -> np.ndarray:
@@ -80,6 +98,32 @@ def eye_opening(u: np.ndarray, v: np.ndarray, side: int) -> tuple[np.ndarray, np
     up = ey + LID_UP * s
     inside = (np.asarray(v) > lo) & (np.asarray(v) < up)
     return lo, up, inside
+
+
+def blink_displacement(u: np.ndarray, v: np.ndarray, side: int) -> np.ndarray:
+    """Displacement ``(dy, dz)`` (mm, array ``shape + (2,)``) of a full blink of one eye.
+
+    The upper lid margin comes down 0.97 of the way to the lower margin (a slit stays, so the
+    rest -> current map remains one-to-one); the open eye between the margins is squeezed
+    into that slit. The pretarsal skin -- from the margin up to the upper border of the
+    tarsal plate, :data:`TARSAL_HEIGHT_MM` above it at the middle of the eye -- follows the
+    margin fully (the tarsus is rigid); above it the displacement fades to nothing over
+    :data:`PRESEPTAL_FADE_MM` (the preseptal skin unfolding from the lid fold), below the brow.
+    Both heights follow the margin's profile (tallest at the middle of the eye, nothing at the
+    corners). Where the lid covers the eye it is lifted a little (it slides over the eyeball).
+    The lower lid does not move.
+    """
+    u = np.asarray(u, dtype=float)
+    v = np.asarray(v, dtype=float)
+    lo, up, _ = eye_opening(u, v, side)
+    gap = up - lo
+    profile = gap / (LID_UP + LID_LO)                 # 1 at the middle of the eye, 0 at the corners
+    top = up + TARSAL_HEIGHT_MM * profile             # upper border of the tarsal plate
+    fade = np.maximum(PRESEPTAL_FADE_MM * profile, 1e-9)
+    in_eye = np.clip(v - lo, 0.0, None)
+    dy = 0.97 * np.where(v < up, -np.minimum(in_eye, gap), -gap * (1.0 - _smoothstep((v - top) / fade)))
+    dz = 1.2 * np.clip(-dy / 9.5, 0.0, 1.0) * (v >= up)
+    return np.stack([dy, dz], axis=-1)
 
 
 def jaw_weights(u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -153,16 +197,8 @@ class Deformer:
             w = _g(u - side * 30.0, v - 22.0, 24.0, 16.0) * _sigmoid((v - 7.0) / 1.5)
             b[..., 1] += 6.0 * w
             b[..., 2] += 0.5 * w
-            # blink: 0.97 of the full closure so a slit stays and the rest -> current map
-            # remains one-to-one
             b = basis[_CH[blink]]
-            lo, up, _ = eye_opening(u, v, side)
-            gap = up - lo
-            in_eye = np.clip(v - lo, 0.0, None)
-            dy = 0.97 * np.where(v < up, -np.minimum(in_eye, gap), -gap * (1.0 - _smoothstep((v - up) / 9.0)))
-            b[..., 1] += dy
-            # the lid slides over the eyeball: lift it a little where it covers the eye
-            b[..., 2] += 1.2 * np.clip(-dy / 9.5, 0.0, 1.0) * (v >= up)
+            b[..., 1:] += blink_displacement(u, v, side)
         b = basis[_CH["pucker"]]
         w = _g(u, v + 67.0, 20.0, 10.0)
         b[..., 0] -= 0.25 * u * w

@@ -172,8 +172,8 @@ def test_synthetic_take_gaps(synth):
     during the blink); known runs are hidden as well; fill and compare with the truth.
 
     Measured (60 frames, 80 markers, high motion, one blink, 0.05 mm noise): hidden runs
-    median 0.11 mm, p95 0.44 mm; eyelids 4.2 mm with the guide's algorithm (nothing visible
-    moves with the lid: see docs/gap-filling.md), 0.26 mm with a 5-frame momentum."""
+    median 0.12 mm, p95 0.47 mm; eyelids 5.1 mm with the guide's algorithm (nothing visible
+    moves with the lid: see docs/gap-filling.md), 0.28 mm with a 5-frame momentum."""
     rng = np.random.default_rng(0)
     gap = synth.visible.sum(-1) < 2
     X = np.where(gap[..., None], np.nan, synth.xyz + rng.normal(scale=0.05, size=synth.xyz.shape))
