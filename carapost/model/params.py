@@ -232,6 +232,15 @@ class GapFillingParameters(ParamSection):
                     help="neighbours: the guide's gap interpolation; face_model: a face model learnt from the "
                          "take (or the loaded ROM); blink: neighbours plus eyelid blink pulses, their depth taken "
                          "from the loaded ROM when there is one (not in Vicon CaraPost; docs/gap-filling.md).")
+    # The blink method's eye geometry without a ROM (carapost.core.gapfill_lid): the closed-lid
+    # depth is the upper-to-lower lid marker distance minus twice this offset, or the fissure
+    # for a labelled upper-lid marker with no lower-lid marker below it.
+    lid_marker_offset: float = p(2.5, "Lid Marker Offset", unit="mm", lo=0.0, hi=10.0,
+                                 help="blink: how far the eyelid markers are painted from the lid margins "
+                                      "(1 mm here is 2 mm of closed-lid depth).")
+    palpebral_fissure: float = p(9.7, "Palpebral Fissure", unit="mm", lo=1.0, hi=20.0,
+                                 help="blink: the open eye's height between the lid margins, used for an "
+                                      "upper-lid marker without a lower-lid marker (mean 9.7 mm, sd 1.2).")
 
 
 @dataclass

@@ -198,7 +198,9 @@ def _fill_arrays(take: Take, frames: np.ndarray, fill: np.ndarray, known: np.nda
         if method == "blink":
             res, _ = fill_blink_gaps(xyz, remaining, frame_rate=take.frame_rate, known=known & ~fill, base=res,
                                      n_neighbours=n_neighbours, depths=blink_depths,
-                                     depth_model=blink_depth_model, lid_points=upper_lid_columns(take))
+                                     depth_model=blink_depth_model, lid_points=upper_lid_columns(take),
+                                     lid_marker_offset_mm=params.lid_marker_offset,
+                                     fissure_mm=params.palpebral_fissure)
         out[res.filled] = res.xyz[res.filled]
         filled |= res.filled
     return out, filled

@@ -228,7 +228,8 @@ def test_blink_method_fills_eyelid_gaps(blink_takes, undo_check):
     medians = {}
     methods = {"neighbours": {}, "blink": {"method": "blink"},
                "blink_fit": {"method": "blink", "blink_depth_model": "fit"},
-               "blink_rom": {"method": "blink", "rom": rom}}
+               "blink_rom": {"method": "blink", "rom": rom},
+               "blink_wide_fissure": {"params": GapFillingParameters(method="blink", palpebral_fissure=12.7)}}
     for name, kw in methods.items():
         ch = interpolate_gaps(take, **kw)
         if name == "blink_rom":
@@ -253,6 +254,16 @@ def test_blink_method_fills_eyelid_gaps(blink_takes, undo_check):
     # palpebral-fissure prior (9.7 mm for the synthetic 9.29 mm: measured 0.27-0.69 mm per blink)
     assert max(medians["blink"]) < 1.0 and max(medians["blink"]) < min(medians["neighbours"]) - 2.0, medians
     assert max(medians["blink_fit"]) < min(medians["neighbours"]), medians   # measured 1.4-2.2 mm
+    # the Gap-Filling Parameters' Palpebral Fissure reaches the fill: 3 mm too wide a fissure
+    # closes the lid too far (measured 1.5-2.1 mm per blink against 0.27-0.69)
+    assert min(medians["blink_wide_fissure"]) > max(medians["blink"]) + 0.5, medians
+
+
+def test_lid_priors_defaults_are_the_core_priors():
+    from carapost.core.gapfill_lid import LID_MARKER_OFFSET_MM, PALPEBRAL_FISSURE_MM
+
+    gp = GapFillingParameters()
+    assert gp.lid_marker_offset == LID_MARKER_OFFSET_MM and gp.palpebral_fissure == PALPEBRAL_FISSURE_MM
 
 
 def test_upper_lid_columns_by_label():
