@@ -106,7 +106,6 @@ def test_calibrate_bad_target(capsys, tmp_path):
 def test_label_command_repairs_a_swap(capsys, tmp_path):
     import numpy as np
 
-    from carapost.io.c3d import read_c3d
     from carapost.io.marker_csv import read_marker_csv, write_marker_csv
 
     rng = np.random.default_rng(0)
