@@ -160,7 +160,8 @@ def _left_side(counts: dict[str, int], midline: np.ndarray) -> list[tuple[str, n
     bu = np.linspace(12.0, 50.0, 40)
     brow = np.c_[bu, 15.0 + 5.0 * np.sin(np.pi * (bu - 10.0) / 42.0)]
     out.append(("Brow", _curve(brow, counts["Brow"], margin=1.0)))
-    # upper lid: 2.5 mm above the lid margin; lower lid: 2.5 mm below
+    # upper lid: 2.5 mm above the lid margin at the middle of the eye, lower lid 2.5 mm below,
+    # both offsets shrinking with the lid towards the corners (2.2 mm for the pairs at +-6 mm)
     for name, dv, k in (("Lid_Upper", LID_UP + 2.5, counts["Lid_Upper"]),
                         ("Lid_Lower", -(LID_LO + 2.5), counts["Lid_Lower"])):
         du = np.array([0.0]) if k == 1 else np.linspace(-6.0, 6.0, k)
