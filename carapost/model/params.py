@@ -231,7 +231,8 @@ class GapFillingParameters(ParamSection):
     method: str = p("neighbours", "Method", choices=FILL_METHODS,
                     help="neighbours: the guide's gap interpolation; face_model: a face model learnt from the "
                          "take (or the loaded ROM); blink: neighbours plus eyelid blink pulses, their depth taken "
-                         "from the loaded ROM when there is one (not in Vicon CaraPost; docs/gap-filling.md).")
+                         "from the loaded ROM when there is one, else from the eye's geometry (Lid Marker "
+                         "Offset, Palpebral Fissure) (not in Vicon CaraPost; docs/gap-filling.md).")
     # The blink method's eye geometry without a ROM (carapost.core.gapfill_lid): the closed-lid
     # depth is the upper-to-lower lid marker distance minus twice this offset, or the fissure
     # for a labelled upper-lid marker with no lower-lid marker below it.
