@@ -30,7 +30,8 @@
    markers against the rigid shape around the reference frame: it undoes confusions that
    continuity alone never undoes (fast motion, a source's own inconsistent labels).
 7. Optionally (default) the isolated check (:mod:`carapost.core.label_isolated`) unnames
-   pieces no neighbourhood allows, and names the one marker never labelled by elimination.
+   pieces no neighbourhood allows, names the one marker never labelled by elimination, and
+   renames (or unnames) pieces no partner checks that ride rigidly on another body.
 """
 
 from __future__ import annotations
@@ -100,7 +101,9 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
         Then unname pieces of tracklets whose label's neighbourhood rules them out
         (:func:`~carapost.core.label_isolated.impossible_pieces`), and give the one marker
         never labelled the isolated unlabelled tracklets
-        (:func:`~carapost.core.label_isolated.name_unseen`).
+        (:func:`~carapost.core.label_isolated.name_unseen`); then rename or unname the
+        pieces no partner of their label anchors that are attached to another body
+        (:func:`~carapost.core.label_isolated.attached_pieces`).
     progress : callable, optional
         ``progress(done, total)`` over the events; returning False stops early (the labels
         found so far are returned).
@@ -111,7 +114,7 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
         ``report``: ``reference_frame``, ``tracklets``, ``events``, ``unlabelled_points``,
         ``link_residual_mm`` (median, p90), ``swaps_repaired``, ``rigid_renamed``,
         ``shape_repairs``, ``impossible_unnamed`` (points), ``unseen_named`` (tracklets),
-        ``conflicts``.
+        ``attached_relabelled`` (pieces), ``conflicts``.
 
     Raises
     ------
@@ -199,8 +202,8 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
                                               path_switch=path_switch)
         report["shape_repairs"] = n_shape
     if isolated_check:
-        labels, report["impossible_unnamed"], report["unseen_named"] = _isolated_check(
-            pts, labels, tracks, h, n_markers, t0, ign, model)
+        labels, report["impossible_unnamed"], report["unseen_named"], report["attached_relabelled"] = \
+            _isolated_check(pts, labels, tracks, h, n_markers, t0, ign, model, groups)
     report["unlabelled_points"] = int((valid & (labels < 0)).sum())
     return LabelResult(labels, report)
 
@@ -377,12 +380,14 @@ def _first_partners(model: ShapeModel, k: int) -> ShapeModel:
 
 
 def _isolated_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: np.ndarray, n_markers: int,
-                    t0: int, ign: np.ndarray, model: ShapeModel | None = None) -> tuple[np.ndarray, int, int]:
+                    t0: int, ign: np.ndarray, model: ShapeModel | None = None,
+                    groups: RigidGroups | None = None) -> tuple[np.ndarray, int, int, int]:
     """Unname pieces their label's shape rules out (the shape ``model`` around ``t0``, by
     default made here), then give the one marker never labelled the isolated unlabelled
-    tracklets (:mod:`carapost.core.label_isolated`). Returns the labels, the points unnamed
-    and the tracklets named."""
-    from .label_isolated import impossible_pieces, name_unseen
+    tracklets, then rename (or unname) the pieces no partner checks that ride rigidly on
+    another body (:mod:`carapost.core.label_isolated`). Returns the labels, the points
+    unnamed, the tracklets named and the pieces renamed or unnamed as attached."""
+    from .label_isolated import attached_pieces, impossible_pieces, name_unseen
     from .label_shape import reference_model
     if model is None:
         xyz, pieces = _trajectories(pts, labels, n_markers, tracks.tid)
@@ -392,7 +397,10 @@ def _isolated_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hint
     bad &= ~ign[np.maximum(labels, 0)]
     labels = np.where(bad, -1, labels).astype(np.int32)
     labels, n = name_unseen(pts, labels, tracks.tid, n_markers, t0, ignore=ign)
-    return labels, int(bad.sum()), n
+    prot = (hints >= 0) | ign[np.maximum(labels, 0)]
+    labels, ren, unn = attached_pieces(pts, labels, tracks.tid, model,
+                                       None if groups is None else groups.members, protected=prot)
+    return labels, int(bad.sum()), n, ren + unn
 
 
 def _split_conflicting_hints(points: np.ndarray, links: np.ndarray, tracks: Tracklets,

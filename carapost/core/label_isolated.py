@@ -19,6 +19,16 @@ claims that point (``kinematics_basket_sprint``: ``Sync:Sync`` named ``HandL`` a
    time, take its name: a marker set's one marker placed apart from all others, seen only
    there, is that marker (elimination). With two or more unseen markers, or isolated
    tracklets overlapping in time, nothing is named.
+3. :func:`attached_pieces`: a piece (at least ``min_length`` frames) whose label's partners
+   are absent (or present only far from their distance, under wrong names themselves) in
+   nearly all its frames cannot be checked by its shape; but when its
+   distances to at least two present labelled markers stay constant over the piece (range at
+   most ``max_range`` mm), it rides on their body: it is that body's marker. When two or more
+   of those markers belong to one rigid group (:mod:`carapost.core.label_rigid`) that has
+   exactly one member absent over the whole piece, the piece takes that member's name; if
+   its own label belongs to one of those groups it is kept; otherwise it is unnamed
+   (``kinematics_basket_sprint`` after frame 2200: arm-cluster points named after the head
+   and scapula markers, which never come back).
 """
 
 from __future__ import annotations
@@ -27,7 +37,7 @@ import numpy as np
 
 from .label_shape import ShapeModel
 
-__all__ = ["impossible_pieces", "name_unseen"]
+__all__ = ["impossible_pieces", "name_unseen", "attached_pieces"]
 
 
 _KEY_BASE = 1 << 20  # more markers than any marker set
@@ -193,3 +203,126 @@ def name_unseen(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, n_marke
     take = good[inv]
     lab[f[take], j[take]] = unseen[0]
     return lab, int(good.sum())
+
+
+def attached_pieces(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, model: ShapeModel,
+                    groups: list | None = None, *, min_length: int = 5, max_range: float = 6.0,
+                    min_present: float = 0.8, min_attached: int = 2, confirm_mm: float = 10.0,
+                    confirm_spreads: float = 3.0, anchored_share: float = 0.2, stride: int = 3,
+                    protected: np.ndarray | None = None) -> tuple[np.ndarray, int, int]:
+    """Rename or unname pieces whose label's partners are all absent but which ride rigidly on
+    other present markers.
+
+    Parameters
+    ----------
+    points : float (F, N, 3)
+        Point clouds, mm.
+    labels : int (F, N)
+        Marker of each point, -1 unlabelled.
+    tid : int (F, N)
+        Tracklet of each point, -1 none.
+    model : ShapeModel
+        Partners of each marker near the reference frame. A point is *anchored* when one of
+        its label's partners is present within ``confirm_mm + confirm_spreads * spread`` of
+        the model's distance; a piece is judged only when at most ``anchored_share`` of its
+        points are (its label's partners are absent, or present only under wrong names),
+        counted on every ``stride``-th frame.
+    groups : list of int arrays, optional
+        Members of each rigid group (``RigidGroups.members``).
+    min_length : int
+        Pieces shorter than this (frames) are left alone.
+    max_range : float
+        mm; a labelled marker present in ``min_present`` of the piece's frames whose distance
+        to the piece varies by at most this much is *attached* to it.
+    min_attached : int
+        Attached markers needed to judge the piece.
+    protected : bool (F, N), optional
+        Hinted points: their pieces are left alone.
+
+    Returns
+    -------
+    labels : int32 (F, N)
+    renamed, unnamed : int
+        Pieces renamed and unnamed.
+    """
+    lab = np.array(labels, np.int32)
+    F, N = lab.shape
+    M = model.partners.shape[0]
+    P = np.maximum(model.partners, 0)
+    has_p = model.partners >= 0
+    # on every ``stride``-th frame (float32): a point is anchored when some partner of its
+    # label is present at about its distance
+    fr = np.arange(0, F, max(1, int(stride)))
+    ks = _piece_keys(lab[fr], tid[fr])
+    sf, sj = np.nonzero(ks >= 0)
+    if not len(sf):
+        return lab, 0, 0
+    L = lab[fr[sf], sj]
+    Xs = np.full((len(fr), M, 3), np.nan, np.float32)
+    Xs[sf, L] = points[fr[sf], sj]
+    # (frames, M, K, 3), per marker (denser than per point; np.take is the fast gather)
+    diff = np.take(Xs, P.ravel(), axis=1).reshape(len(fr), M, -1, 3) - Xs[:, :, None]
+    dev = np.abs(np.sqrt(np.einsum("fmkc,fmkc->fmk", diff, diff)) - model.dist.astype(np.float32))
+    with np.errstate(invalid="ignore"):
+        near = dev <= (confirm_mm + confirm_spreads * model.spread).astype(np.float32)
+    anchored = ((near & has_p).any(-1) | ~has_p.any(-1))[sf, L]
+    uk, q = np.unique(ks[sf, sj], return_inverse=True)
+    ns = np.bincount(q, minlength=len(uk))
+    cand = np.bincount(q, weights=anchored, minlength=len(uk)) <= anchored_share * ns
+    if protected is not None and cand.any():
+        pm = np.asarray(protected, bool) & (lab >= 0)
+        cand &= ~np.isin(uk, _piece_keys(lab, tid)[pm])
+    if not cand.any():
+        return lab, 0, 0
+    # the candidate pieces over all their frames
+    keys = _piece_keys(lab, tid)
+    f, j = np.nonzero(keys >= 0)
+    xyz = np.full((F, M, 3), np.nan, np.float32)
+    xyz[f, lab[f, j]] = points[f, j]
+    pres = np.isfinite(xyz[..., 0])
+    on = np.isin(keys[f, j], uk[cand])
+    f, j = f[on], j[on]
+    uk, q = np.unique(keys[f, j], return_inverse=True)
+    bad = np.bincount(q, minlength=len(uk)) >= min_length
+    if not bad.any():
+        return lab, 0, 0
+    group_of = np.full(M, -1)
+    members = list(groups or [])
+    for g, mem in enumerate(members):
+        group_of[np.asarray(mem)] = g
+    renamed = unnamed = 0
+    for k in np.flatnonzero(bad):
+        sel = q == k
+        ff, jj = f[sel], j[sel]
+        L = int(lab[ff[0], jj[0]])
+        d = np.linalg.norm(xyz[ff] - points[ff, jj].astype(np.float32)[:, None], axis=-1)  # (n, M)
+        seen = np.isfinite(d)
+        ok = seen.mean(0) >= min_present
+        ok[L] = False
+        if not ok.any():
+            continue
+        dd = np.where(seen, d, np.nan)[:, ok]
+        rng = np.nanmax(dd, 0) - np.nanmin(dd, 0)
+        att = np.flatnonzero(ok)[rng <= max_range]
+        if len(att) < min_attached:
+            continue
+        new = -1
+        gs = np.unique(group_of[att][group_of[att] >= 0])
+        gs = [g for g in gs if (group_of[att] == g).sum() >= min_attached]
+        if group_of[L] >= 0 and group_of[L] in gs:
+            continue  # it rides on its own rigid group
+        if len(gs) == 1:
+            mem = np.asarray(members[gs[0]])
+            miss = mem[~pres[ff][:, mem].any(0)]
+            if len(miss) == 1:
+                new = int(miss[0])
+        lab[ff, jj] = new
+        xyz[ff, L] = np.nan
+        pres[ff, L] = False
+        if new >= 0:
+            xyz[ff, new] = points[ff, jj]
+            pres[ff, new] = True
+            renamed += 1
+        else:
+            unnamed += 1
+    return lab, renamed, unnamed
