@@ -297,18 +297,24 @@ def fit_spheres(image: np.ndarray, x: np.ndarray, y: np.ndarray, params: SphereP
 
 
 def _suppress(x: np.ndarray, y: np.ndarray, r: np.ndarray, score: np.ndarray) -> np.ndarray:
-    """bool (N,): keep each detection unless a better one lies within its radius."""
-    order = np.argsort(-score, kind="stable")
-    keep = np.zeros(len(x), bool)
-    kx, ky = [], []
-    for i in order:
-        if kx:
-            d2 = (np.asarray(kx) - x[i]) ** 2 + (np.asarray(ky) - y[i]) ** 2
-            if d2.min() < r[i] ** 2:
-                continue
-        keep[i] = True
-        kx.append(x[i])
-        ky.append(y[i])
+    """bool (N,): keep each detection unless a better one that is kept lies within its radius
+    (greedy, best score first; only neighbours within the largest radius are looked at)."""
+    from scipy.spatial import cKDTree
+
+    n = len(x)
+    keep = np.zeros(n, bool)
+    if n == 0:
+        return keep
+    pairs = cKDTree(np.c_[x, y]).query_pairs(r=float(r.max()), output_type="ndarray")
+    a, b = np.r_[pairs[:, 0], pairs[:, 1]], np.r_[pairs[:, 1], pairs[:, 0]]
+    close = (x[a] - x[b]) ** 2 + (y[a] - y[b]) ** 2 < r[a] ** 2   # b would hide a
+    a, b = a[close], b[close]
+    by_a = np.argsort(a, kind="stable")
+    a, b = a[by_a], b[by_a]
+    start = np.searchsorted(a, np.arange(n + 1))
+    for i in np.argsort(-score, kind="stable"):
+        if not keep[b[start[i]:start[i + 1]]].any():
+            keep[i] = True
     return keep
 
 
