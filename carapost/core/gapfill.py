@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
+    "checked_fill_arrays",
     "GapFillResult",
     "fill_gaps",
     "neighbour_motion",
@@ -349,6 +350,17 @@ def constrain_to_rays(X: np.ndarray, origin: np.ndarray, direction: np.ndarray) 
     return np.where(np.isfinite(out).all(-1, keepdims=True), out, X)
 
 
+def checked_fill_arrays(xyz: np.ndarray, fill: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``xyz`` as float (F, P, 3) and ``fill`` as bool (F, P), or ValueError naming the bad shape."""
+    xyz = np.asarray(xyz, dtype=float)
+    if xyz.ndim != 3 or xyz.shape[2] != 3:
+        raise ValueError(f"xyz must have shape (F, P, 3), got {xyz.shape}")
+    fill = np.asarray(fill, dtype=bool)
+    if fill.shape != xyz.shape[:2]:
+        raise ValueError(f"fill mask must have shape {xyz.shape[:2]}, got {fill.shape}")
+    return xyz, fill
+
+
 def fill_gaps(xyz: np.ndarray, fill: np.ndarray, *, known: np.ndarray | None = None, forwards: bool = True,
               backwards: bool = True, n_neighbours: int = 8, elastic: bool = True,
               velocity_frames: float = 0.0, rays: tuple[np.ndarray, np.ndarray] | None = None,
@@ -401,13 +413,8 @@ def fill_gaps(xyz: np.ndarray, fill: np.ndarray, *, known: np.ndarray | None = N
     >>> fill_gaps(xyz, gap).xyz[1, 0].round(6)
     array([0., 1., 0.])
     """
-    xyz = np.asarray(xyz, dtype=float)
-    if xyz.ndim != 3 or xyz.shape[2] != 3:
-        raise ValueError(f"xyz must have shape (F, P, 3), got {xyz.shape}")
+    xyz, fill = checked_fill_arrays(xyz, fill)
     F, P, _ = xyz.shape
-    fill = np.asarray(fill, dtype=bool)
-    if fill.shape != (F, P):
-        raise ValueError(f"fill mask must have shape {(F, P)}, got {fill.shape}")
     if n_neighbours < 1:
         raise ValueError(f"n_neighbours must be at least 1, got {n_neighbours}")
     if velocity_frames < 0:

@@ -59,7 +59,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from .gapfill import GapFillResult, distance_spread, fill_gaps, gap_runs, neighbour_motion
+from .gapfill import GapFillResult, checked_fill_arrays, distance_spread, fill_gaps, gap_runs, neighbour_motion
 from .gapfill_lid import LID_MARKER_OFFSET_MM, PALPEBRAL_FISSURE_MM, lid_closing_depth
 
 __all__ = ["BlinkFit", "blink_pulse", "fill_blink_gaps", "excursion_depths"]
@@ -390,13 +390,7 @@ def fill_blink_gaps(xyz: np.ndarray, fill: np.ndarray, *, frame_rate: float, kno
     ValueError
         Mismatched shapes, non-positive frame rate or window.
     """
-    xyz = np.asarray(xyz, dtype=float)
-    if xyz.ndim != 3 or xyz.shape[2] != 3:
-        raise ValueError(f"xyz must have shape (F, P, 3), got {xyz.shape}")
-    F, P, _ = xyz.shape
-    fill = np.asarray(fill, dtype=bool)
-    if fill.shape != (F, P):
-        raise ValueError(f"fill mask must have shape {(F, P)}, got {fill.shape}")
+    xyz, fill = checked_fill_arrays(xyz, fill)
     if not frame_rate > 0:
         raise ValueError(f"frame_rate must be positive, got {frame_rate}")
     if not window_s > 0:
