@@ -53,7 +53,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "core"))
 sys.path.insert(0, str(ROOT))
 
-from blob_images import RenderConfig, render_frame  # noqa: E402
+from blob_images import RenderConfig, jpeg_roundtrip, render_frame, truth_dots  # noqa: E402
 
 from carapost.core.blobs import detect_blobs  # noqa: E402
 from carapost.model.params import BlobParameters  # noqa: E402
@@ -115,21 +115,11 @@ def synth_cases(seeds: list[int], counts=(35, 80, 156), colours=("black", "white
             imgs = take.images(f)
             contrast = image_contrast(take, f, cameras)
             for c in cameras:
-                img = imgs[c]
-                if jpeg:
-                    img = cv2.imdecode(cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, jpeg])[1],
-                                       cv2.IMREAD_GRAYSCALE)
-                mk = np.isfinite(tr.centroid_xy[f, :, c, 0])
-                br = np.isfinite(tr.brim_centroid_xy[f, :, c, 0])
-                xy = np.concatenate([tr.centroid_xy[f, mk, c], tr.brim_centroid_xy[f, br, c]])
-                vis = np.concatenate([tr.visible[f, mk, c], tr.brim_visible[f, br, c]])
-                part = np.concatenate([tr.partly_hidden[f, mk, c], np.zeros(br.sum(), bool)])
-                rad = np.concatenate([tr.radius_px[f, mk, c], tr.brim_radius_px[f, br, c]])
-                pol = np.concatenate([np.full(mk.sum(), mpol), np.full(br.sum(), bpol)])
-                brim = np.concatenate([np.zeros(mk.sum(), bool), np.ones(br.sum(), bool)])
+                img = jpeg_roundtrip(imgs[c], jpeg)
                 H, W = img.shape
-                cut = ((xy[:, 0] - rad < 1) | (xy[:, 1] - rad < 1) | (xy[:, 0] + rad > W - 2)
-                       | (xy[:, 1] + rad > H - 2))
+                d = truth_dots(tr, f, c, mpol, bpol, (H, W))
+                xy, vis, part, rad, pol, brim = d.xy, d.visible, d.partly_hidden, d.radius, d.polarity, d.brim
+                cut = d.cut
                 faint = np.array([contrast[c][min(max(int(round(y)), 0), H - 1), min(max(int(round(x)), 0), W - 1)]
                                   < FAINT_CONTRAST for x, y in xy], bool)
                 out.append(Case(img, xy, pol, vis & ~part & ~cut, vis & (part | cut), rad, brim,

@@ -52,7 +52,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "core"))
 sys.path.insert(0, str(ROOT))
 
-from blob_images import RenderConfig, render_frame  # noqa: E402
+from blob_images import RenderConfig, jpeg_roundtrip, render_frame, truth_dots  # noqa: E402
 
 from carapost.core import blob_score  # noqa: E402
 from carapost.core.blobs import analyse_blobs  # noqa: E402
@@ -129,20 +129,9 @@ def synth_images(n_images: int, seed: int):
             for c in range(take.n_cameras):
                 if done >= n_images:
                     return
-                img = imgs[c]
-                if jpeg:
-                    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, jpeg])
-                    img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
-                mk = np.isfinite(tr.centroid_xy[f, :, c, 0])
-                br = np.isfinite(tr.brim_centroid_xy[f, :, c, 0])
-                xy = np.concatenate([tr.centroid_xy[f, mk, c], tr.brim_centroid_xy[f, br, c]])
-                seen = np.concatenate([tr.visible[f, mk, c], tr.brim_visible[f, br, c]])
-                part = np.concatenate([tr.partly_hidden[f, mk, c], np.zeros(br.sum(), bool)])
-                rad = np.concatenate([tr.radius_px[f, mk, c], tr.brim_radius_px[f, br, c]])
-                pol = np.concatenate([np.full(mk.sum(), mpol), np.full(br.sum(), bpol)]).astype(np.int8)
-                H, W = img.shape
-                cut = ((xy[:, 0] - rad < 1) | (xy[:, 1] - rad < 1) | (xy[:, 0] + rad > W - 2)
-                       | (xy[:, 1] + rad > H - 2))
+                img = jpeg_roundtrip(imgs[c], jpeg)
+                d = truth_dots(tr, f, c, mpol, bpol, img.shape)
+                xy, pol, rad, seen, part, cut = d.xy, d.polarity, d.radius, d.visible, d.partly_hidden, d.cut
                 yield img, xy, pol, rad, seen & ~part & ~cut, seen
                 done += 1
 

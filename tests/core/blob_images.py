@@ -19,7 +19,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-__all__ = ["RenderConfig", "RenderedFrame", "render_frame", "match", "evaluate"]
+__all__ = ["RenderConfig", "RenderedFrame", "render_frame", "match", "evaluate", "TruthDots", "truth_dots",
+           "jpeg_roundtrip"]
 
 
 @dataclass
@@ -347,3 +348,49 @@ def evaluate(frames: list[RenderedFrame], dets: list[dict], radius: float = 1.5,
         "median_err": float(np.median(errs_a)) if len(errs_a) else float("nan"),
         "p95_err": float(np.percentile(errs_a, 95)) if len(errs_a) else float("nan"),
     }
+
+
+@dataclass
+class TruthDots:
+    """The dots of one synthetic-take image (markers, then brim dots), from its ground truth.
+
+    ``xy`` (n, 2) px; ``visible``, ``partly_hidden``, ``brim``, ``cut`` (touching the image
+    border) bool (n,); ``radius`` (n,) px; ``polarity`` int8 (n,) (+1 white, -1 black).
+    """
+
+    xy: np.ndarray
+    visible: np.ndarray
+    partly_hidden: np.ndarray
+    radius: np.ndarray
+    polarity: np.ndarray
+    brim: np.ndarray
+    cut: np.ndarray
+
+
+def truth_dots(truth, frame: int, camera: int, marker_polarity: int, brim_polarity: int,
+               shape: tuple[int, int]) -> TruthDots:
+    """The markers and brim dots of ``truth`` (a synthetic take's ``SynthTruth``) projected
+    in ``camera`` at ``frame``, for an image of ``shape`` (H, W)."""
+    f, c, tr = frame, camera, truth
+    mk = np.isfinite(tr.centroid_xy[f, :, c, 0])
+    br = np.isfinite(tr.brim_centroid_xy[f, :, c, 0])
+    xy = np.concatenate([tr.centroid_xy[f, mk, c], tr.brim_centroid_xy[f, br, c]])
+    rad = np.concatenate([tr.radius_px[f, mk, c], tr.brim_radius_px[f, br, c]])
+    H, W = shape
+    cut = (xy[:, 0] - rad < 1) | (xy[:, 1] - rad < 1) | (xy[:, 0] + rad > W - 2) | (xy[:, 1] + rad > H - 2)
+    return TruthDots(xy=xy,
+                     visible=np.concatenate([tr.visible[f, mk, c], tr.brim_visible[f, br, c]]),
+                     partly_hidden=np.concatenate([tr.partly_hidden[f, mk, c], np.zeros(br.sum(), bool)]),
+                     radius=rad,
+                     polarity=np.concatenate([np.full(mk.sum(), marker_polarity),
+                                              np.full(br.sum(), brim_polarity)]).astype(np.int8),
+                     brim=np.concatenate([np.zeros(mk.sum(), bool), np.ones(br.sum(), bool)]),
+                     cut=cut)
+
+
+def jpeg_roundtrip(image: np.ndarray, quality: int) -> np.ndarray:
+    """``image`` (uint8 (H, W)) encoded as JPEG at ``quality`` and decoded (unchanged if 0)."""
+    if not quality:
+        return image
+    return cv2.imdecode(cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])[1], cv2.IMREAD_GRAYSCALE)
+
