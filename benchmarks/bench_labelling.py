@@ -147,7 +147,9 @@ def _methods(pts, truth, h, M, skeleton=None, group=None, reference=None, names=
                          "shape_repairs": r.report.get("shape_repairs", 0),
                          "impossible_unnamed": r.report.get("impossible_unnamed", 0),
                          "unseen_named": r.report.get("unseen_named", 0),
-                         "attached_relabelled": r.report.get("attached_relabelled", 0)}
+                         "attached_relabelled": r.report.get("attached_relabelled", 0),
+                         "take_renamed": r.report.get("take_renamed", 0),
+                         "range_renamed": r.report.get("range_named", 0) + r.report.get("range_unnamed", 0)}
     if reference is not None:
         out["assignment"].update(_disputed(pts, r.labels, truth, group, M, reference))
     if names is not None and group is not None:

@@ -146,6 +146,30 @@ def test_label_command_isolated_check_switch(capsys, tmp_path):
     assert "unseen_named" not in reports[("--no-isolated-check",)]["labeller"]
 
 
+def test_label_command_take_check_switch(capsys, tmp_path):
+    import json
+
+    import numpy as np
+
+    from carapost.io.marker_csv import read_marker_csv, write_marker_csv
+
+    rng = np.random.default_rng(2)
+    xyz = rng.uniform(-60, 60, (1, 8, 3)) + rng.normal(0, 0.05, (300, 8, 3))
+    xyz[100:250, 7] = np.nan                     # a marker absent for 150 frames: the take check runs
+    src = tmp_path / "in.csv"
+    write_marker_csv(src, [f"M{i}" for i in range(8)], xyz, frame_rate=60.0)
+    reports = {}
+    for flag in ((), ("--no-take-check",)):
+        code, out, err = run(capsys, "label", str(src), str(tmp_path / "out.csv"), "--no-progress", "--json", *flag)
+        assert code == 0, err
+        reports[flag] = json.loads(out.strip().splitlines()[-1])
+        back = read_marker_csv(tmp_path / "out.csv")
+        order = [back.names.index(f"M{i}") for i in range(8)]
+        np.testing.assert_allclose(back.xyz[:, order], xyz, atol=1e-3)
+    assert reports[()]["labeller"]["take_renamed"] == 0
+    assert "take_renamed" not in reports[("--no-take-check",)]["labeller"]
+
+
 def test_ctrl_c_cancels_then_interrupts(capsys):
     import os
     import signal

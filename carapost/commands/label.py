@@ -21,8 +21,7 @@ def cmd_label(args: argparse.Namespace) -> dict[str, Any]:
                             reference_frame=args.reference_frame, ignore_markers=args.ignore or (),
                             hand_heuristics=args.hand_heuristics, plot_every=args.plot_every,
                             plot_dir=args.plot_dir, units=args.units,
-                            options=None if args.isolated_check or args.method != "assignment"
-                            else {"isolated_check": False})
+                            options=_checks_off(args))
     dt = time.perf_counter() - t0
     report = dict(report)
     report["seconds"] = dt
@@ -31,10 +30,22 @@ def cmd_label(args: argparse.Namespace) -> dict[str, Any]:
         if key in report:
             print(f"  {key}: {report[key]}")
     named = report.get("labeller", {}).get("unseen_named", 0)
+    renamed = sum(report.get("labeller", {}).get(k, 0) for k in ("take_renamed", "range_named", "range_unnamed"))
+    if renamed:
+        print(f"  note: the take check renamed or unnamed {renamed} piece(s) by the marker set learnt over the take "
+              "(run with --no-take-check to compare)")
     if named:
         print(f"  note: {named} isolated tracklet(s) took the name of the one marker never seen in the reference "
               "frame (check them, or run with --no-isolated-check)")
     return report
+
+
+def _checks_off(args: argparse.Namespace) -> dict[str, bool] | None:
+    """The default method's checks the command line turned off (None: all on)."""
+    if args.method != "assignment":
+        return None
+    off = {name: False for name in ("isolated_check", "take_check") if not getattr(args, name)}
+    return off or None
 
 
 def add_parsers(sub: Any) -> dict[str, Any]:
@@ -52,5 +63,8 @@ def add_parsers(sub: Any) -> dict[str, Any]:
     p.add_argument("--no-isolated-check", dest="isolated_check", action="store_false",
                    help="(assignment) do not unname pieces their neighbours rule out, nor give the one marker never "
                         "seen in the reference frame to isolated unlabelled tracklets")
+    p.add_argument("--no-take-check", dest="take_check", action="store_false",
+                   help="(assignment) do not name pieces by the marker set learnt over the whole take (the last "
+                        "check, run only where a marker is long absent or an earlier check repaired something)")
     p.add_argument("--units", choices=("mm", "cm", "m"), help="CSV input units (default mm)")
     return {"label": cmd_label}

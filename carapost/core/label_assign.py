@@ -32,6 +32,11 @@
 7. Optionally (default) the isolated check (:mod:`carapost.core.label_isolated`) unnames
    pieces no neighbourhood allows, names the one marker never labelled by elimination, and
    renames (or unnames) pieces no partner checks that ride rigidly on another body.
+8. Optionally (default) the take check (:mod:`carapost.core.label_ranges`) names pieces by
+   the marker set learnt over the whole take (rigid groups of the take fitted in every
+   frame, every pair's distance and spread), where a marker is long absent or a check
+   before repaired something: segments that vanished for good leave their names free, and
+   the reference frame's shape cannot name what comes back.
 """
 
 from __future__ import annotations
@@ -57,8 +62,8 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
                      template: np.ndarray | None = None, ignore: Sequence[int] = (),
                      params: AssignmentParams | None = None, ratio: float = 0.5, passes: int = 2,
                      repair_swaps: bool = True, rigid_check: bool = True, shape_check: bool = True,
-                     isolated_check: bool = True, shape_tolerance: float = 0.5, path_switch: float | None = 300.0,
-                     progress: ProgressFn | None = None) -> LabelResult:
+                     isolated_check: bool = True, take_check: bool = True, shape_tolerance: float = 0.5,
+                     path_switch: float | None = 300.0, progress: ProgressFn | None = None) -> LabelResult:
     """Label unlabelled point clouds (the default method).
 
     Parameters
@@ -104,6 +109,13 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
         (:func:`~carapost.core.label_isolated.name_unseen`); then rename or unname the
         pieces no partner of their label anchors that are attached to another body
         (:func:`~carapost.core.label_isolated.attached_pieces`).
+    take_check : bool
+        Finally name pieces by the marker set learnt over the take
+        (:mod:`carapost.core.label_ranges`): rigid groups of the whole take fitted in every
+        frame (a near-symmetric cluster told apart by the distances learnt over the take),
+        then unnamed and badly fitting pieces named by those distances. Only where a marker
+        is absent for a long run (120 frames, or 2 % of the take) or the checks before
+        repaired something.
     progress : callable, optional
         ``progress(done, total)`` over the events; returning False stops early (the labels
         found so far are returned).
@@ -114,7 +126,8 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
         ``report``: ``reference_frame``, ``tracklets``, ``events``, ``unlabelled_points``,
         ``link_residual_mm`` (median, p90), ``swaps_repaired``, ``rigid_renamed``,
         ``shape_repairs``, ``impossible_unnamed`` (points), ``unseen_named`` (tracklets),
-        ``attached_relabelled`` (pieces), ``conflicts``.
+        ``attached_relabelled`` (pieces), ``take_renamed``, ``range_named``, ``range_unnamed``
+        (pieces), ``conflicts``.
 
     Raises
     ------
@@ -204,6 +217,9 @@ def label_assignment(points: np.ndarray, hints: np.ndarray | None, n_markers: in
     if isolated_check:
         labels, report["impossible_unnamed"], report["unseen_named"], report["attached_relabelled"] = \
             _isolated_check(pts, labels, tracks, h, n_markers, t0, ign, model, groups)
+    if take_check and (_long_gaps(labels, n_markers) or any(report.get(k, 0) for k in _TROUBLE)):
+        labels, trep = _take_check(pts, labels, tracks, h, n_markers, ign)
+        report.update(trep)
     report["unlabelled_points"] = int((valid & (labels < 0)).sum())
     return LabelResult(labels, report)
 
@@ -401,6 +417,55 @@ def _isolated_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hint
     labels, ren, unn = attached_pieces(pts, labels, tracks.tid, model,
                                        None if groups is None else groups.members, protected=prot)
     return labels, int(bad.sum()), n, ren + unn
+
+
+_TROUBLE = ("rigid_renamed", "shape_repairs", "impossible_unnamed", "unseen_named", "attached_relabelled")
+
+
+def _long_gaps(labels: np.ndarray, n_markers: int, frames: int = 120, share: float = 0.02) -> bool:
+    """Whether some labelled marker is absent for a run of at least ``max(frames, share x F)``
+    frames (it vanished and came back, or vanished for good): where the take check can help."""
+    F = labels.shape[0]
+    run = max(frames, int(share * F))
+    if F <= run:
+        return False
+    f, j = np.nonzero(labels >= 0)
+    pres = np.zeros((F, n_markers), bool)
+    pres[f, labels[f, j]] = True
+    seen = pres.any(0)
+    # a window of ``run`` frames without the marker: a rolling count of its samples
+    c = np.vstack([np.zeros((1, n_markers), np.int64), np.cumsum(pres, 0)])
+    empty = (c[run:] - c[:-run]) == 0
+    return bool((empty.any(0) & seen).any())
+
+
+def _take_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: np.ndarray, n_markers: int,
+                ign: np.ndarray, rounds: int = 3) -> tuple[np.ndarray, dict]:
+    """Name pieces by the marker set learnt over the take (:mod:`carapost.core.label_ranges`):
+    the rigid groups of the whole take are fitted in every frame where one is incompletely
+    confirmed (:func:`~carapost.core.label_rigid.rigid_relabel`, one vote enough, ties of
+    near-symmetric clusters broken by the learnt distances), then ``rounds`` passes of
+    :func:`~carapost.core.label_ranges.range_relabel`. Returns the labels and the report."""
+    from .label_ranges import learn_ranges, range_relabel, range_tiebreak, take_groups
+    from .label_rigid import rigid_relabel
+    rep = {"take_renamed": 0, "range_named": 0, "range_unnamed": 0}
+    xyz, pieces = _trajectories(pts, labels, n_markers, tracks.tid)
+    xyz[:, ign] = np.nan
+    groups = take_groups(xyz, pieces)
+    model = learn_ranges(xyz, pieces)
+    prot = (hints >= 0) | ign[np.maximum(labels, 0)] & (labels >= 0)
+    if len(groups):
+        labels, rr = rigid_relabel(pts, labels, tracks.tid, groups, protected=prot, stride=1, min_votes=1,
+                                   tiebreak=range_tiebreak(model))
+        rep["take_renamed"] = rr["pieces_renamed"]
+    for _ in range(rounds):
+        labels, nn, nu, _m = range_relabel(pts, labels, tracks.tid, n_markers, model=model, protected=prot,
+                                           ignore=ign)
+        rep["range_named"] += nn
+        rep["range_unnamed"] += nu
+        if nn + nu == 0:
+            break
+    return labels, rep
 
 
 def _split_conflicting_hints(points: np.ndarray, links: np.ndarray, tracks: Tracklets,

@@ -216,11 +216,12 @@ def _place(P: np.ndarray, cfg: np.ndarray, tol: np.ndarray, src: np.ndarray,
 
 
 def _fit_one(P: np.ndarray, cfg: np.ndarray, D: np.ndarray, tol: np.ndarray,
-             dP: np.ndarray) -> tuple[np.ndarray | None, float, bool]:
+             dP: np.ndarray, with_rival: bool = False) -> tuple:
     """Best rigid placement of one group among the points ``P`` (n, 3) (``dP`` their distance
     matrix, diagonal negative), from triplets of points matching triplets of well spread
     members. Returns ``(mapping (g,) point index or -1, rms, unique)``; mapping None when no
-    triplet of points matches.
+    triplet of points matches. ``with_rival``: also the placement that makes it not unique
+    (or None).
     """
     from itertools import combinations
     hyps: dict[tuple, tuple[int, float]] = {}
@@ -241,11 +242,12 @@ def _fit_one(P: np.ndarray, cfg: np.ndarray, D: np.ndarray, tol: np.ndarray,
             if key not in hyps:
                 hyps[key] = (int((mp >= 0).sum()), rms)
     if not hyps:
-        return None, np.inf, False
+        return (None, np.inf, False, None) if with_rival else (None, np.inf, False)
     ranked = sorted(hyps.items(), key=lambda kv: (-kv[1][0], kv[1][1]))
     best, (n_in, rms) = ranked[0]
     bm = np.array(best)
     unique = True
+    rival = None
     for key, (n2, r2) in ranked[1:]:
         km = np.array(key)
         both = (bm >= 0) & (km >= 0)
@@ -253,12 +255,15 @@ def _fit_one(P: np.ndarray, cfg: np.ndarray, D: np.ndarray, tol: np.ndarray,
             continue  # a subset of the best placement
         if n2 >= n_in and r2 <= 2.0 * rms + 0.5:
             unique = False
+            rival = km
         break
+    if with_rival:
+        return bm, rms, unique, rival
     return bm, rms, unique
 
 
 def fit_groups(points: np.ndarray, groups: RigidGroups, *, labels: np.ndarray | None = None,
-               confirmed: np.ndarray | None = None, min_points: int = 3) -> np.ndarray:
+               confirmed: np.ndarray | None = None, min_points: int = 3, tiebreak=None) -> np.ndarray:
     """Names of one frame's points from rigid fits of the groups.
 
     Parameters
@@ -274,6 +279,10 @@ def fit_groups(points: np.ndarray, groups: RigidGroups, *, labels: np.ndarray | 
         another group; a group with at least 3 confirmed members is placed from them alone.
     min_points : int
         Fewest points a group's fit must name.
+    tiebreak : callable, optional
+        ``tiebreak(points, labels, confirmed, members, [mapping, rival])`` -> 0, 1 or None:
+        chooses between two placements of a group that fit about equally well (mappings
+        (g,) member -> point index or -1); None (default) leaves the group unnamed there.
 
     Returns
     -------
@@ -318,7 +327,15 @@ def fit_groups(points: np.ndarray, groups: RigidGroups, *, labels: np.ndarray | 
         Q = P[cand]
         dP = np.linalg.norm(Q[:, None] - Q[None], axis=-1)
         np.fill_diagonal(dP, -1e9)
-        mp, rms, unique = _fit_one(Q, cfg, groups.dist[gi], tol, dP)
+        mp, rms, unique, rival = _fit_one(Q, cfg, groups.dist[gi], tol, dP, with_rival=True)
+        if mp is not None and not unique and tiebreak is not None and rival is not None:
+            # a near-symmetric cluster: other evidence (e.g. distances learnt over the take)
+            # may tell the two placements apart
+            maps = [np.where(m >= 0, cand[np.maximum(m, 0)], -1) for m in (mp, rival)]
+            pick = tiebreak(P, lab, conf, mem, maps)
+            if pick is not None:
+                unique = True
+                mp = (mp, rival)[pick]
         if mp is None or not unique or (mp >= 0).sum() < min_points:
             continue
         fits.append((int((mp >= 0).sum()), -rms, gi, np.where(mp >= 0, cand[np.maximum(mp, 0)], -1)))
@@ -397,7 +414,7 @@ def _place_batch(Xg: np.ndarray, cm: np.ndarray, cfg: np.ndarray, tol: np.ndarra
 def rigid_relabel(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, groups: RigidGroups, *,
                   frames: np.ndarray | None = None, stride: int = 4, min_votes: int = 3,
                   agreement: float = 0.8, coverage: float = 0.5,
-                  protected: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+                  protected: np.ndarray | None = None, tiebreak=None) -> tuple[np.ndarray, dict]:
     """Rename pieces whose rigid-group fits clearly name another marker.
 
     Parameters
@@ -419,6 +436,8 @@ def rigid_relabel(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, group
         ... and of its sampled frames.
     protected : bool (F, N), optional
         Points that keep their label (hints).
+    tiebreak : callable, optional
+        Passed to :func:`fit_groups` (near-symmetric clusters).
 
     Returns
     -------
@@ -473,7 +492,7 @@ def rigid_relabel(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, group
     fit = np.where(claims >= 0, claims, fit)
     todo = np.flatnonzero(slow)
     for i in todo.tolist():
-        fit[i] = fit_groups(pts[fr[i]], groups, labels=lf[i], confirmed=conf[i])
+        fit[i] = fit_groups(pts[fr[i]], groups, labels=lf[i], confirmed=conf[i], tiebreak=tiebreak)
     rep["frames_searched"] = int(todo.size)
     pf = piece[fr]
     sampled = np.bincount(pf[pf >= 0], minlength=P)
