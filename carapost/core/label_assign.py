@@ -443,8 +443,9 @@ def _take_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: n
                 ign: np.ndarray, rounds: int = 3) -> tuple[np.ndarray, dict]:
     """Name pieces by the marker set learnt over the take (:mod:`carapost.core.label_ranges`):
     the rigid groups of the whole take are fitted in every frame where one is incompletely
-    confirmed (:func:`~carapost.core.label_rigid.rigid_relabel`, one vote enough, ties of
-    near-symmetric clusters broken by the learnt distances), then ``rounds`` passes of
+    confirmed (:func:`~carapost.core.label_rigid.rigid_relabel`, one vote enough, coverage
+    over the frames a fit could judge, ties of near-symmetric clusters broken by the learnt
+    distances to confirmed and ungrouped markers), then ``rounds`` passes of
     :func:`~carapost.core.label_ranges.range_relabel`. Returns the labels and the report."""
     from .label_ranges import learn_ranges, range_relabel, range_tiebreak, take_groups
     from .label_rigid import rigid_relabel
@@ -456,7 +457,8 @@ def _take_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: n
     prot = (hints >= 0) | ign[np.maximum(labels, 0)] & (labels >= 0)
     if len(groups):
         labels, rr = rigid_relabel(pts, labels, tracks.tid, groups, protected=prot, stride=1, min_votes=1,
-                                   tiebreak=range_tiebreak(model))
+                                   judged=True, exchange=True, partial=True,
+                                   tiebreak=range_tiebreak(model, groups=groups))
         rep["take_renamed"] = rr["pieces_renamed"]
     for _ in range(rounds):
         labels, nn, nu, _m = range_relabel(pts, labels, tracks.tid, n_markers, model=model, protected=prot,

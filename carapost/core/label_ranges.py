@@ -15,7 +15,8 @@ stays 49 +- 1 mm from that one".
    still (most of a take) may move apart in the rest.
 2. :func:`take_groups`: the rigid groups of the whole take; fitted in every frame by
    :func:`~carapost.core.label_rigid.rigid_relabel`, where :func:`range_tiebreak` tells the
-   two placements of a near-symmetric cluster apart by the learnt distances.
+   two placements of a near-symmetric cluster apart by the learnt distances (to confirmed
+   markers, and to markers of no rigid group, which can never be confirmed).
 3. :func:`range_relabel`: every unnamed piece (a run of one tracklet left unlabelled) and
    every named piece whose label does not fit its tight partners (spread of a few mm) is
    scored against the labels absent over it (:func:`range_costs`: per sampled frame, the
@@ -23,7 +24,8 @@ stays 49 +- 1 mm from that one".
    per pair - heavy tails for pairs across joints, and ``2 ln S`` so that a vague label
    does not beat a precise one). The best label takes the piece when its tight partners
    are present and fit and it beats the second best (and the piece's own label) by
-   ``margin`` per frame; a re-checked named piece far from all its label's distances is
+   ``margin`` per frame (a label attached to nothing - an object apart from the subject -
+   needs no tight partner); a re-checked named piece far from all its label's distances is
    unnamed. Decisions are applied most certain first, never giving one label to two
    pieces at once.
 """
@@ -192,6 +194,7 @@ def range_relabel(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, n_mar
                   ignore: np.ndarray | None = None, min_length: int = 1, frames_per_piece: int = 24,
                   min_partners: int = 3, min_frames: int = 1, tight_mm: float = 3.0, tight_rel: float = 0.03,
                   max_fit: float = 4.0, suspect: float = 9.0, impossible: float = 8.0, margin: float = 6.0,
+                  unattached_rel: float = 0.1,
                   cap: float = 25.0, min_run: int = 20,
                   stride: int = 3) -> tuple[np.ndarray, int, int, RangeModel | None]:
     """Name unnamed pieces and re-check badly fitting named ones by the learnt distances.
@@ -231,6 +234,12 @@ def range_relabel(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, n_mar
     margin : float
         -2 log-likelihood per frame by which the best label must beat the second best free
         label (and a named piece's own label).
+    unattached_rel : float
+        A label whose every pair has a spread of at least this share of its distance is
+        attached to nothing (an object apart from the subject: ``Sync`` of
+        ``kinematics_basket_sprint``, spreads of 18 % and more; a body marker has a partner
+        within 4-6 %, across a joint): it needs no tight partner and is given on its costs
+        alone (Sync's points named ForearmL Marker3 at 989-994 and left unnamed at 3463-3464).
     stride : int
         Named pieces are screened on every ``stride``-th frame; a piece with no screened
         frame is re-checked.
@@ -272,6 +281,11 @@ def range_relabel(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, n_mar
         pieces[lf, lab[lf, lj]] = tid[lf, lj]
         model = learn_ranges(xyz, pieces, min_run=min_run)
     tight = np.isfinite(model.dist) & (model.spread <= tight_mm + tight_rel * np.nan_to_num(model.dist))
+    # labels attached to nothing (every pair's spread above ``unattached_rel`` of its distance):
+    # no partner can confirm them, their costs alone decide
+    with np.errstate(invalid="ignore", divide="ignore"):
+        loose = ~(np.isfinite(model.dist) & (model.spread < unattached_rel * np.nan_to_num(model.dist))).any(1)
+    loose &= np.isfinite(model.dist).any(1)
     # named pieces whose label fits its tight partners (checked every ``stride`` frames, vectorised)
     # are left alone; the others are re-checked below
     fr = np.arange(0, F, max(1, int(stride)))
@@ -312,7 +326,7 @@ def range_relabel(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, n_mar
             continue
         cost, far, fit, nfit = range_costs(points[fs[ev], js[ev]].astype(np.float64), P[ev], model, tight=tight,
                                            labels=cand, cap=cap)
-        good = ((nfit > 0).mean(0) >= 0.5) & (fit.sum(0) / np.maximum(nfit.sum(0), 1) <= max_fit)
+        good = ((nfit > 0).mean(0) >= 0.5) & (fit.sum(0) / np.maximum(nfit.sum(0), 1) <= max_fit) | loose[cand]
         C = cost.mean(0)
         nf = int(free.sum())
         best, c2 = -1, np.inf
@@ -360,17 +374,27 @@ def take_groups(xyz: np.ndarray, pieces: np.ndarray, *, min_run: int = 20, sampl
                         max_spread_mm=max_spread_mm)
 
 
-def range_tiebreak(model: RangeModel, *, margin: float = 10.0, min_partners: int = 2):
+def range_tiebreak(model: RangeModel, *, groups=None, margin: float = 10.0, min_partners: int = 2):
     """A tie-breaker for :func:`~carapost.core.label_rigid.fit_groups`: of two placements of a
     near-symmetric group naming as many points, the one whose points fit the learnt distances
     to the frame's confirmed markers outside the group better (summed -2 log-likelihood of
     :func:`range_costs`) by at least ``margin``; None when neither does or fewer than
-    ``min_partners`` such markers are present."""
+    ``min_partners`` such markers are present.
+
+    With ``groups`` (the :class:`~carapost.core.label_rigid.RigidGroups` being fitted), the
+    labelled points whose label belongs to no group count as partners as well: they can
+    never be confirmed (a hand flexing against the forearm), yet their learnt distances may
+    be the only evidence in the frame (``kinematics_basket_sprint`` at 2154-2160: three
+    forearm points and the hand, 65 mm from ForearmL Marker4 and 127 mm from Marker1)."""
     M = model.dist.shape[0]
     none_tight = np.zeros((M, M), bool)
+    grouped = np.full(M, groups is None)  # without groups: confirmed partners only
+    if groups is not None:
+        for mem in groups.members:
+            grouped[mem[mem < M]] = True
 
     def pick(P: np.ndarray, lab: np.ndarray, conf: np.ndarray, members: np.ndarray, maps: list):
-        ok = conf & (lab >= 0) & (lab < M) & ~np.isin(lab, members)
+        ok = (conf | ~grouped[np.clip(lab, 0, M - 1)]) & (lab >= 0) & (lab < M) & ~np.isin(lab, members)
         if ok.sum() < min_partners or len({int((m >= 0).sum()) for m in maps}) != 1:
             return None
         part = np.full((M, 3), np.nan)

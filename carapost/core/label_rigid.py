@@ -263,7 +263,8 @@ def _fit_one(P: np.ndarray, cfg: np.ndarray, D: np.ndarray, tol: np.ndarray,
 
 
 def fit_groups(points: np.ndarray, groups: RigidGroups, *, labels: np.ndarray | None = None,
-               confirmed: np.ndarray | None = None, min_points: int = 3, tiebreak=None) -> np.ndarray:
+               confirmed: np.ndarray | None = None, min_points: int = 3, tiebreak=None,
+               partial: bool = False) -> np.ndarray:
     """Names of one frame's points from rigid fits of the groups.
 
     Parameters
@@ -283,6 +284,10 @@ def fit_groups(points: np.ndarray, groups: RigidGroups, *, labels: np.ndarray | 
         ``tiebreak(points, labels, confirmed, members, [mapping, rival])`` -> 0, 1 or None:
         chooses between two placements of a group that fit about equally well (mappings
         (g,) member -> point index or -1); None (default) leaves the group unnamed there.
+    partial : bool
+        Where two placements stay tied, name the points both name alike (the apex of a
+        near-isosceles triangle: ForearmL Marker2 of ``kinematics_basket_sprint`` between
+        Marker1 and Marker4, 49 and 50 mm away); these fits rank below every full fit.
 
     Returns
     -------
@@ -336,6 +341,11 @@ def fit_groups(points: np.ndarray, groups: RigidGroups, *, labels: np.ndarray | 
             if pick is not None:
                 unique = True
                 mp = (mp, rival)[pick]
+        if mp is not None and not unique and partial and rival is not None and (mp >= 0).sum() >= min_points:
+            same = np.where((mp == rival) & (mp >= 0), mp, -1)  # the points both placements name alike
+            if (same >= 0).any():
+                fits.append((0, -rms, gi, np.where(same >= 0, cand[np.maximum(same, 0)], -1)))
+            continue
         if mp is None or not unique or (mp >= 0).sum() < min_points:
             continue
         fits.append((int((mp >= 0).sum()), -rms, gi, np.where(mp >= 0, cand[np.maximum(mp, 0)], -1)))
@@ -414,7 +424,9 @@ def _place_batch(Xg: np.ndarray, cm: np.ndarray, cfg: np.ndarray, tol: np.ndarra
 def rigid_relabel(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, groups: RigidGroups, *,
                   frames: np.ndarray | None = None, stride: int = 4, min_votes: int = 3,
                   agreement: float = 0.8, coverage: float = 0.5,
-                  protected: np.ndarray | None = None, tiebreak=None) -> tuple[np.ndarray, dict]:
+                  protected: np.ndarray | None = None, tiebreak=None,
+                  judged: bool = False, exchange: bool = False,
+                  partial: bool = False) -> tuple[np.ndarray, dict]:
     """Rename pieces whose rigid-group fits clearly name another marker.
 
     Parameters
@@ -433,11 +445,24 @@ def rigid_relabel(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, group
     agreement : float
         ... which are at least this share of its votes ...
     coverage : float
-        ... and of its sampled frames.
+        ... and of its sampled frames (with ``judged``, of its *judged* frames: those where
+        a fit named its point or it was confirmed).
     protected : bool (F, N), optional
         Points that keep their label (hints).
     tiebreak : callable, optional
         Passed to :func:`fit_groups` (near-symmetric clusters).
+    judged : bool
+        Coverage over the judged frames only. With every frame fitted (the take check), a
+        piece of a returning cluster is judged only where 3 of the cluster's points are seen
+        (``kinematics_basket_sprint``: ForearmL Marker2 named Marker3 over 35 frames, three
+        forearm points seen in 7 of them); the other frames say nothing either way.
+    partial : bool
+        Passed to :func:`fit_groups` (the points a tied fit names alike).
+    exchange : bool
+        A displaced piece whose old name is taken takes the old name of the piece that
+        displaced it where that is free (the two were exchanged: ``kinematics_basket_sprint``
+        at 2089-2097, HandL and WheelchairL Marker3; the hand, in no rigid group, has no fit
+        of its own to name it).
 
     Returns
     -------
@@ -492,7 +517,8 @@ def rigid_relabel(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, group
     fit = np.where(claims >= 0, claims, fit)
     todo = np.flatnonzero(slow)
     for i in todo.tolist():
-        fit[i] = fit_groups(pts[fr[i]], groups, labels=lf[i], confirmed=conf[i], tiebreak=tiebreak)
+        fit[i] = fit_groups(pts[fr[i]], groups, labels=lf[i], confirmed=conf[i], tiebreak=tiebreak,
+                            partial=partial)
     rep["frames_searched"] = int(todo.size)
     pf = piece[fr]
     sampled = np.bincount(pf[pf >= 0], minlength=P)
@@ -502,7 +528,8 @@ def rigid_relabel(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, group
     total = votes.sum(1)
     top = votes.argmax(1)
     nt = votes[np.arange(P), top]
-    move = (nt >= min_votes) & (nt >= agreement * total) & (nt >= coverage * sampled) & (top != cur)
+    move = (nt >= min_votes) & (nt >= agreement * total) & (nt >= coverage * (total if judged else sampled)) & (
+        top != cur)
     if protected is not None:
         prot = np.zeros(P, bool)
         pp = piece[np.asarray(protected, bool) & valid]
@@ -526,6 +553,7 @@ def rigid_relabel(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, group
     movers = np.flatnonzero(move)
     movers = movers[np.argsort(-nt[movers], kind="stable")]
     displaced: set[int] = set()
+    by: dict[int, int] = {}  # displaced piece -> the mover that took its name
     for p in movers.tolist():
         new[cells_of(p)] = -1
     # each mover takes its name where no confirmed piece holds it; the holders are unnamed
@@ -542,6 +570,7 @@ def rigid_relabel(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, group
         for o in others:
             new[cells_of(o)] = -1
             displaced.add(o)
+            by.setdefault(o, p)
         new[c] = L
         rep["pieces_renamed"] += 1
         rep["samples_renamed"] += int(c.size)
@@ -550,12 +579,16 @@ def rigid_relabel(points: np.ndarray, labels: np.ndarray, tid: np.ndarray, group
     nf = new.reshape(F, N)
     for p in back:
         c = cells_of(p)
-        L = int(cur[p])
-        if L < 0 or not c.size:
+        if not c.size:
             continue
         f = frm[c]
-        if not (nf[f] == L).any():
-            new[c] = L
+        names = [int(cur[p])]
+        if exchange and p in by:
+            names.append(int(cur[by[p]]))
+        for L in names:
+            if L >= 0 and not (nf[f] == L).any():
+                new[c] = L
+                break
     out = new.reshape(F, N).astype(np.int32)
     rep["samples_renamed"] = int(((out != old.reshape(F, N)) & (out >= 0)).sum())
     return out, rep
