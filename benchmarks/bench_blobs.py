@@ -29,6 +29,14 @@ per-image ratios). Both run in the same process on each image in turn (alternati
 goes first).
 
 Prints one JSON line. ``python benchmarks/bench_blobs.py [--seeds 2] [--frames 10]``
+
+``--compare TREE`` compares this checkout's detector with the one of another checkout
+(``git worktree add /tmp/base HEAD``), imported in the same process as ``carapost_base``: both
+run on each image in turn (alternating which goes first, the minimum CPU time of
+``--repeat`` runs per image), and the JSON line gives the time ratio new / old per set, both
+versions' missed and false detections, and how far the detection tables differ (images with
+a different number of detections, the largest coordinate change of matched detections).
+``--cache FILE`` keeps the generated images in a pickle (made on the first run).
 """
 
 from __future__ import annotations
@@ -285,18 +293,109 @@ def groups(cases: list[Case]) -> dict[str, list[int]]:
     return g
 
 
+def load_base(tree: str):
+    """``detect_blobs`` of the checkout at ``tree``, imported as the package ``carapost_base``
+    (its modules import each other relatively, so both versions live in one process)."""
+    import importlib
+    import importlib.util
+
+    pkg = Path(tree).resolve() / "carapost"
+    spec = importlib.util.spec_from_file_location("carapost_base", pkg / "__init__.py",
+                                                  submodule_search_locations=[str(pkg)])
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["carapost_base"] = mod
+    spec.loader.exec_module(mod)
+    return importlib.import_module("carapost_base.core.blobs").detect_blobs
+
+
+def table_difference(a: dict, b: dict) -> tuple[int, float, float]:
+    """``(count difference, largest centre change (px), largest score change)`` between two
+    detection tables, detections matched by polarity and nearest centre (within 1 px)."""
+    from scipy.spatial import cKDTree
+
+    dn, dxy, ds = abs(len(a["x"]) - len(b["x"])), 0.0, 0.0
+    for p in (-1, 1):
+        ia, ib = np.flatnonzero(a["polarity"] == p), np.flatnonzero(b["polarity"] == p)
+        if not len(ia) or not len(ib):
+            continue
+        pa = np.stack([a["x"][ia], a["y"][ia]], 1).astype(float)
+        pb = np.stack([b["x"][ib], b["y"][ib]], 1).astype(float)
+        dd, jj = cKDTree(pb).query(pa)
+        m = dd < 1.0
+        if m.any():
+            dxy = max(dxy, float(dd[m].max()))
+            ds = max(ds, float(np.abs(a["score"][ia[m]].astype(float) - b["score"][ib[jj[m]]]).max()))
+    return dn, dxy, ds
+
+
+def compare(cases: list[Case], tree: str, repeat: int) -> dict:
+    """This checkout's detector against the one at ``tree`` on the same images (one process)."""
+    base = load_base(tree)
+    runs = {"new": detect_blobs, "old": base}
+    times = {k: [] for k in runs}
+    found = {k: [] for k in runs}
+    diffs = []
+    for k in runs:                     # first calls: imports, compiled kernels' cache
+        runs[k](cases[0].image, BlobParameters())
+    for i, case in enumerate(cases):
+        pols = sorted(set(case.pol.tolist()))
+        p = BlobParameters(black_min_radius=R_MIN, black_max_radius=R_MAX, white_min_radius=R_MIN,
+                           white_max_radius=R_MAX, find_black_blobs=-1 in pols, find_white_blobs=1 in pols)
+        best = {k: np.inf for k in runs}
+        tab = {}
+        for _ in range(repeat):
+            for k in (("new", "old") if i % 2 == 0 else ("old", "new")):
+                t = time.thread_time()
+                tab[k] = runs[k](case.image, p)
+                best[k] = min(best[k], time.thread_time() - t)
+        for k in runs:
+            times[k].append(best[k])
+            d = tab[k]
+            found[k].append(match_case(case, np.stack([d["x"], d["y"]], 1).astype(float), d["polarity"].astype(int)))
+        diffs.append(table_difference(tab["new"], tab["old"]))
+    out = {"benchmark": "blobs_compare", "base": str(tree), "repeat": repeat}
+    for name, idx in groups(cases).items():
+        if "_" in name and name not in ("synth_black", "synth_white"):
+            continue
+        tn, to = np.asarray(times["new"])[idx], np.asarray(times["old"])[idx]
+        sn, so = summarise([found["new"][i] for i in idx]), summarise([found["old"][i] for i in idx])
+        out[name] = {"time_ratio_new_old": round(float(tn.sum() / to.sum()), 3),
+                     "time_ratio_per_image": round(float(np.median(tn / to)), 3),
+                     "new_ms": round(1e3 * float(np.median(tn)), 1), "old_ms": round(1e3 * float(np.median(to)), 1),
+                     "new_missed_false": [sn["fn"], sn["fp"]], "old_missed_false": [so["fn"], so["fp"]],
+                     "images_count_differs": int(sum(diffs[i][0] > 0 for i in idx)),
+                     "max_centre_change_px": float(max(diffs[i][1] for i in idx)),
+                     "max_score_change": float(max(diffs[i][2] for i in idx))}
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=2, help="synthetic takes per (colour, marker count)")
     ap.add_argument("--frames", type=int, default=9, help="rendered frames")
     ap.add_argument("--seed", type=int, default=500)
     ap.add_argument("--cameras", type=int, default=4, help="cameras per synthetic frame")
+    ap.add_argument("--compare", metavar="TREE", help="compare with the detector of another checkout")
+    ap.add_argument("--repeat", type=int, default=1, help="runs per image with --compare (minimum CPU time)")
+    ap.add_argument("--cache", metavar="FILE", help="pickle of the generated images (made if missing)")
     args = ap.parse_args()
     cv2.setNumThreads(1)
-    tuning = rendered_cases(3, args.seed + 1000) + synth_cases([args.seed + 1000], counts=(80,), frames_per_take=1,
-                                                               cameras=(0,))
-    cases = synth_cases([args.seed + k for k in range(args.seeds)], cameras=tuple(range(args.cameras)))
-    cases += rendered_cases(args.frames, args.seed)
+    import pickle
+
+    if args.cache and Path(args.cache).exists():
+        with open(args.cache, "rb") as fh:
+            tuning, cases = pickle.load(fh)
+    else:
+        tuning = rendered_cases(3, args.seed + 1000) + synth_cases([args.seed + 1000], counts=(80,),
+                                                                   frames_per_take=1, cameras=(0,))
+        cases = synth_cases([args.seed + k for k in range(args.seeds)], cameras=tuple(range(args.cameras)))
+        cases += rendered_cases(args.frames, args.seed)
+        if args.cache:
+            with open(args.cache, "wb") as fh:
+                pickle.dump((tuning, cases), fh)
+    if args.compare:
+        print(json.dumps(compare(cases, args.compare, args.repeat)))
+        return
     setting = tune_sbd(tuning)
     # Interleaved per image (alternating which goes first), so that the load of a shared
     # machine and warm caches fall on both detectors alike.

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .blob_kernels import climb_step, laplacian_histograms
+
 __all__ = ["Candidates", "ResponseLevel", "RingTest", "signed_image", "pyramid", "detection_scales", "climb",
            "responses", "find_candidates", "ring_test", "pixel_noise", "informative", "OUTER_SIDE",
            "refine_level", "MAX_REFINE_RADIUS"]
@@ -93,19 +95,29 @@ class Candidates:
 class ResponseLevel:
     """Normalised responses of one pyramid level.
 
-    ``snr`` is the best SNR over the scales (float32 (h, w)); ``per_scale`` holds each scale's
-    SNR map, ``sides`` its inner box side, ``radius`` its full-resolution radius (px) and
-    ``spread`` the response spread it was divided by (grey levels: a number, or a map with
-    ``adaptive``); ``outer`` is the sum of the signed image over the outer box (uint16).
+    ``per_scale`` holds each scale's SNR map (float32 (h, w)), ``sides`` its inner box side,
+    ``radius`` its full-resolution radius (px) and ``spread`` the response spread it was
+    divided by (grey levels: a number, or a map with ``adaptive``); ``outer`` is the sum of
+    the signed image over the outer box (uint16). ``snr`` is the best SNR over the scales
+    (computed when first asked for: the preview needs it, the detector does not).
     """
 
     level: int
-    snr: np.ndarray
     per_scale: list[np.ndarray]
     sides: tuple[int, ...]
     radius: tuple[float, ...]
     spread: list
     outer: np.ndarray
+
+    @property
+    def snr(self) -> np.ndarray:
+        best = self.__dict__.get("_snr")
+        if best is None:
+            best = self.per_scale[0]
+            for other in self.per_scale[1:]:
+                best = cv2.max(best, other)
+            self.__dict__["_snr"] = best
+        return best
 
 
 def informative(img: np.ndarray) -> np.ndarray:
@@ -117,13 +129,23 @@ def informative(img: np.ndarray) -> np.ndarray:
     return (img > _FLAT_LO) & (img < _FLAT_HI)
 
 
-def pixel_noise(img: np.ndarray) -> float:
+def pixel_noise(img: np.ndarray, compiled: bool = True) -> float:
     """Robust standard deviation (grey levels) of pixel noise plus fine texture of a uint8 image.
 
     1.4826 x the median absolute 4-neighbour Laplacian over every third informative pixel
     (:func:`informative`), divided by ``sqrt(20)`` (the Laplacian's gain on white noise); at
-    least the 8-bit quantisation noise.
+    least the 8-bit quantisation noise. ``compiled``: the median from the histogram of the
+    (integer) Laplacian values (:func:`carapost.core.blob_kernels.laplacian_histograms`, the
+    same value), else by partitioning them.
     """
+    if compiled:
+        keep, every = laplacian_histograms(np.ascontiguousarray(img, np.uint8))
+        hist = keep if keep.sum() >= 256 else every
+        size = int(hist.sum())
+        if size == 0:
+            return _MIN_PIXEL_NOISE
+        med = float(np.searchsorted(np.cumsum(hist), size // 2, side="right"))
+        return max(1.4826 * med / np.sqrt(20.0), 0.29)
     a = img.astype(np.int16)
     c = a[1:-1:3, 1:-1:3]
     h, w = c.shape
@@ -250,10 +272,7 @@ def responses(img: np.ndarray, level: int, sides: tuple[int, ...], *, adaptive: 
             snr = cv2.addWeighted(inner, c / n_in / spread, outer, -c / n_out / spread, 0.0, dtype=cv2.CV_32F)
         per_scale.append(snr)
         spreads.append(spread)
-    best = per_scale[0]
-    for other in per_scale[1:]:
-        best = cv2.max(best, other)
-    return ResponseLevel(level=level, snr=best, per_scale=per_scale, sides=tuple(sides),
+    return ResponseLevel(level=level, per_scale=per_scale, sides=tuple(sides),
                          radius=tuple(_radius_of_side(s, level) for s in sides), spread=spreads, outer=outer)
 
 
@@ -273,7 +292,7 @@ def find_candidates(levels: list[ResponseLevel], *, min_snr: float, polarity: in
     """
     xs, ys, ls, rs, ss = [], [], [], [], []
     for lv in levels:
-        h, w = lv.snr.shape
+        h, w = lv.outer.shape
         if h < 3 or w < 3:
             continue
         outer = lv.outer.ravel()
@@ -403,13 +422,18 @@ def ring_test(pyr: list[np.ndarray], levels: list[ResponseLevel], cand: Candidat
     return RingTest(centre=centre, ring=ring, noise=nz, polarity=polarity)
 
 
-def climb(img: np.ndarray, x: np.ndarray, y: np.ndarray, steps: int = 16
+def climb(img: np.ndarray, x: np.ndarray, y: np.ndarray, steps: int = 16, compiled: bool = True
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Move each point uphill on the 3x3 mean of ``img`` (one pixel per step, 8 neighbours)
     until it reaches a local maximum or ``steps`` steps are done. Returns the end points and
-    the 3x3 mean there (pixels beyond the border repeat the border)."""
+    the 3x3 mean there (pixels beyond the border repeat the border). ``compiled``: the loop of
+    :func:`carapost.core.blob_kernels.climb_step` (the same result), else vectorised numpy
+    over the points still moving."""
+    x, y = np.array(x, np.int64), np.array(y, np.int64)
+    if compiled:
+        top = climb_step(np.ascontiguousarray(img), x, y, steps)
+        return x, y, top
     H, W = img.shape
-    x, y = x.copy(), y.copy()
     top = np.zeros(len(x))
     if len(x) == 0:
         return x, y, top

@@ -2,8 +2,10 @@
 
 All candidates of one patch size (whatever pyramid level they come from) are processed
 together on a stack of square patches ``(N, S, S)`` (:func:`extract_patches`); nothing loops
-over candidates in Python. Morphology and connectivity run on a "mosaic" of the patches
-(stacked with blank rows between them) in single OpenCV calls. Steps 1-2 are
+over candidates in Python: each step is one call of a compiled kernel that loops over the
+candidates and their pixels (:mod:`carapost.core.blob_kernels`, ``blob_kernels_outline``;
+the numpy building blocks here — :func:`_plane_fit`, :func:`_flood`, :func:`_moments` — are
+those of the numpy reference of steps 3-6 and of the kernels' tests). Steps 1-2 are
 :func:`search_levels` (its :class:`LevelSearch` is kept), steps 3-5 :func:`fit_outlines` (in
 :mod:`carapost.core.blob_outline`, on patches cropped to the core's neighbourhood), so
 that the detector can reject candidates after step 2 (the gate) and fit alternative outlines
@@ -43,28 +45,16 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from .blob_patches import K3, MONO, MONO_INDEX, SEP, Patches, box3, dot_rows, extract_patches, mosaic, patch_grid
+from . import blob_kernels
+from .blob_kernels import FLAT_HI as _FLAT_HI
+from .blob_kernels import FLAT_LO as _FLAT_LO
+from .blob_kernels import FP as _FP
+from .blob_kernels import LEVELS
+from .blob_patches import K3, MONO, MONO_INDEX, SEP, Patches, dot_rows, extract_patches, mosaic
 
 __all__ = ["PatchFit", "fit_patches", "patch_half_size", "LEVELS"]
 
-#: Signed-image levels at or below / at or above which a pixel is black or clipped.
-_FLAT_LO, _FLAT_HI = 4, 251
-_FLOOD_ROUND = 4  # flood steps between convergence checks
-#: Levels (fractions of the peak over the ring background) searched for the blob's core.
-LEVELS = (0.5, 0.55, 0.6, 0.65, 0.7, 0.75, 0.8, 0.85, 0.9, 0.95)
-#: A level's component is a blob while its area is at least this fraction of its moment
-#: ellipse's (1 for an ellipse; a dot that has started to flood a band is elongated or
-#: irregular) ...
-_MIN_FILL = 0.9
-#: ... a test made only on components of at least this many pixels, and at levels at least
-#: this many noise sigmas (of the 3x3 mean) below the peak.
-_FILL_MIN_AREA = 20
-_TOP_NOISE = 4.0
-#: ... and not above this level (the top of a flat, clipped or JPEG-coded dot is ragged).
-_MAX_SHAPED_LEVEL = 0.8
-#: Fixed-point scale of the flood levels (uint8, clipped at 255; the peak is ``_FP``: the
-#: searched levels are exact multiples of 10, and 8-bit morphology is the fastest).
-_FP = 200
+_FLOOD_ROUND = 4  # flood steps between convergence checks (:func:`_flood`, the numpy reference)
 DEBUG: dict | None = None
 
 
@@ -336,11 +326,9 @@ class LevelSearch:
     n: int                   # patches in the stack
     half: int
     alive: np.ndarray        # int (A,): patches with a peak above the ring noise
-    p: np.ndarray            # float32 (A, S, S)
     pu: np.ndarray           # uint8 (A, S, S)
     bad: np.ndarray          # bool (A, S, S)
     sat: np.ndarray          # bool (A, S, S)
-    dead: np.ndarray         # bool (A, S, S): black or clipped
     d0: np.ndarray           # float32 (A, S, S): patch minus ring plane
     sig0: np.ndarray         # (A,) ring residual std
     c0: np.ndarray           # float32 (A, 3) ring plane
@@ -353,6 +341,18 @@ class LevelSearch:
     fill: np.ndarray         # (A,) core area over its moment ellipse's, at the found level
     # int: stack indices of the patches with a peak that the pre-gate rejected (not alive)
     pregated: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    @property
+    def p(self) -> np.ndarray:
+        """float32 (A, S, S): the patches' values."""
+        return self.pu.astype(np.float32)
+
+    @property
+    def dead(self) -> np.ndarray:
+        """bool (A, S, S): black or clipped pixels (a dark background beyond the face's
+        silhouette, a clipped card carry no shading information: left out of backgrounds
+        when enough others remain)."""
+        return (self.pu <= _FLAT_LO) | (self.pu >= _FLAT_HI)
 
     def rows(self, sel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """For patch indices ``sel`` (into the stack), the positions in ``sel`` of those
@@ -377,28 +377,11 @@ def search_levels(pat: Patches, radius: np.ndarray, *, max_radius: np.ndarray,
     half = pat.half
     n = len(pat)
     S = 2 * half + 1
-    dy, dx, dxf, dyf, mono, edge = patch_grid(half)
     pu = pat.pu
-    p = pu.astype(np.float32)
     badp, satp = pat.bad, pat.sat
-    # Black or clipped pixels (a dark background beyond the face's silhouette, a clipped
-    # card) carry no shading information: left out of backgrounds when enough others remain.
-    dead = (pu <= _FLAT_LO) | (pu >= _FLAT_HI)
-    rho2 = (dxf * dxf + dyf * dyf)[None]
-    r0 = np.asarray(radius, np.float32)[:, None, None]
-    in_disc = rho2 <= float(half * half)
-    idx = np.arange(n)
 
-    # 1. Ring background and peak.
-    r_in = np.minimum(1.5 * r0 + 1.5, half - 1.5)
-    ring = _prefer_informative((rho2 >= r_in * r_in) & in_disc & ~badp & ~satp, dead)
-    d0, sig0, n0, c0 = _plane_fit(p, ring, mono, iters=1)
-    ds = box3(d0)
-    near = rho2 <= np.maximum(1.5, 0.5 * r0) ** 2
-    flat = np.where(near, ds, -np.inf).reshape(n, -1)
-    pk = np.argmax(flat, axis=1) if n else np.zeros(0, np.int64)
-    peak = flat[idx, pk].astype(np.float64)
-    pky, pkx = np.divmod(pk, S)
+    # 1. Ring background and peak (one compiled call, :func:`blob_kernels.ring_step`).
+    d0, ds, sig0, n0, c0, pk, peak = blob_kernels.ring_step(pu, badp, satp, np.asarray(radius, np.float32), half)
     ok = (peak > 1.0 * sig0) & (peak > 0.5) & (n0 >= 8)
     alive = np.flatnonzero(ok)
     pregated = np.zeros(0, np.int64)
@@ -406,46 +389,22 @@ def search_levels(pat: Patches, radius: np.ndarray, *, max_radius: np.ndarray,
         go = pre_gate(alive, peak[alive], sig0[alive], c0[alive])
         pregated, alive = alive[~go], alive[go]
 
-    # 2. Level search on the flood levels (fixed point: the peak is _FP).
+    # 2. Level search on the flood levels (fixed point: the peak is _FP), one compiled call
+    # (:func:`blob_kernels.level_step`).
     n = len(alive)
-    idx = np.arange(n)
-    p, pu, badp, satp, dead, ds, d0 = p[alive], pu[alive], badp[alive], satp[alive], dead[alive], ds[alive], d0[alive]
-    pky, pkx, peak, r0 = pky[alive], pkx[alive], peak[alive], r0[alive]
+    pu, badp, satp, ds, d0 = pu[alive], badp[alive], satp[alive], ds[alive], d0[alive]
+    pk, peak = pk[alive], peak[alive]
     max_radius, pixel_noise = np.asarray(max_radius, float)[alive], np.asarray(pixel_noise, float)[alive]
     K = len(LEVELS)
     if n == 0:
         z = np.zeros((0, S, S), np.uint8)
-        return LevelSearch(len(pat), half, alive, p, pu, badp, satp, dead, d0, sig0[alive], c0[alive], z, z,
+        return LevelSearch(len(pat), half, alive, pu, badp, satp, d0, sig0[alive], c0[alive], z, z,
                            np.zeros((0, K)), np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0), np.zeros(0),
                            pregated)
-    scale = (_FP / peak).astype(np.float32)[:, None, None]
-    lvl = np.clip(ds * scale, 0, 255).astype(np.uint8)
-    thr = _thresholds()                                                    # (K,)
-    # Flood levels below the lowest searched level are never used: they are all ``thr[0] - 1``.
-    L = _flood(lvl, pky, pkx, half + 4, int(thr[0]) - 1)
-    Lf = L.reshape(n, -1)
-    masks = (Lf[:, None, :] >= thr[None, :, None]).astype(np.float32)      # (n, K, S*S)
-    m = dot_rows(masks.reshape(n * K, -1), mono[:, :6]).reshape(n, K, 6).astype(np.float64)
-    area = m[..., 0]
-    a_s = np.maximum(area, 1.0)
-    vx = m[..., 3] / a_s - (m[..., 1] / a_s) ** 2 + 1.0 / 12.0
-    vy = m[..., 5] / a_s - (m[..., 2] / a_s) ** 2 + 1.0 / 12.0
-    vxy = m[..., 4] / a_s - m[..., 1] * m[..., 2] / (a_s * a_s)
-    # Area over the area of the moment ellipse (a uniform ellipse has Sigma = diag(a^2, b^2)/4).
-    fill = area / (4.0 * np.pi * np.sqrt(np.maximum(vx * vy - vxy * vxy, 1e-6)))
-    edge_max = Lf[:, edge.ravel()].max(axis=1)                             # (n,)
-    a_max = np.pi * (1.3 * max_radius + 2.0) ** 2
-    valid = (edge_max[:, None] < thr[None]) & (area <= a_max[:, None])
-    # The shape test only below the peak's noise band (a flat, noisy top is ragged).
-    noise_band = 1.0 - _TOP_NOISE * (pixel_noise / 3.0) / peak                # 3x3 mean: sigma / 3
-    shaped = np.asarray(LEVELS)[None] <= np.minimum(noise_band, _MAX_SHAPED_LEVEL)[:, None]
-    valid &= (fill >= _MIN_FILL) | (area < _FILL_MIN_AREA) | ~shaped
-    # The core is the lowest level from which every higher level is valid.
-    run = np.cumprod(valid[:, ::-1], axis=1)[:, ::-1].astype(bool)         # valid and all above
-    has = run[:, -1]
-    k_found = np.where(has, np.argmax(run, axis=1), K - 1)
+    lvl, L, area, fill, edge_max, valid, k_found, has = blob_kernels.level_step(ds, peak, pk, half, max_radius,
+                                                                              pixel_noise)
     if DEBUG is not None:
         DEBUG.update(dict(alive=alive, L=L, area=area, fill=fill, edge_max=edge_max, valid=valid, kc=k_found, lvl=lvl,
-                          p=p, peak=peak, pky=pky, pkx=pkx, sig0=sig0[alive], half=half))
-    return LevelSearch(len(pat), half, alive, p, pu, badp, satp, dead, d0, sig0[alive], c0[alive], L, lvl, area,
+                          p=pu, peak=peak, pky=pk // S, pkx=pk % S, sig0=sig0[alive], half=half))
+    return LevelSearch(len(pat), half, alive, pu, badp, satp, d0, sig0[alive], c0[alive], L, lvl, area,
                        k_found, has, peak, fill[np.arange(n), k_found], pregated)

@@ -3,11 +3,13 @@ core found by the level search — local background, coverage, ellipse, centre a
 
 :func:`fit_outlines` works on a kept :class:`~carapost.core.blob_fit.LevelSearch` (any rows,
 any forced core level). Everything it computes lies within a few pixels of the core (the
-background band reaches 4 px beyond it, the fitted region 3 px, the 3x3 means one more), so
-each patch is cropped to a centred square of half size ``core extent + 5`` (rounded up to a
-few size classes, :data:`_CROP_HALVES`) before steps 3-6: a small core in a big patch (a dot
-whose candidate scale was too large, a texture spot) costs what its neighbourhood costs, and
-the results are those of the whole patch.
+background band reaches 4 px beyond it, the fitted region 3 px, the 3x3 means one more). The
+compiled kernel (:func:`carapost.core.blob_kernels_outline.outline_step`, the default) visits
+only that box of each patch; the numpy reference (``compiled=False``, :func:`_outline`) crops
+each patch to a centred square of half size ``core extent + 5`` (rounded up to a few size
+classes, :data:`_CROP_HALVES`) and fits one vectorised batch per window size. Either way a
+small core in a big patch (a dot whose candidate scale was too large, a texture spot) costs
+what its neighbourhood costs, and the results are those of the whole patch.
 """
 
 from __future__ import annotations
@@ -16,21 +18,13 @@ import numpy as np
 
 from . import blob_fit
 from .blob_fit import LEVELS, LevelSearch, PatchFit, _moments, _plane_fit, _prefer_informative, _thresholds
+from .blob_kernels_outline import (_BAND, _MAX_SATURATED_RIM, _MAX_SECTOR_LEVEL, _N_SECTORS, _RAMP, _TRIM_ITERS,
+                                   _TRIM_MARGIN, OUTPUT_FIELDS, outline_step)
 from .blob_patches import box3, dilate, dilate_many, patch_grid
 from .blob_score import asymmetry, ellipse_distance, profile_rms, shape_residual
 
 __all__ = ["fit_outlines", "fit_outline_parts", "crop_need"]
 
-#: Inner and outer radius (px) of the band around the core used as local background.
-_BAND = (2, 4)
-#: Largest fraction of a white blob's surround (2 px) that may be clipped at 255.
-_MAX_SATURATED_RIM = 0.3
-#: Slope of the soft half-contrast region ``q = clip(RAMP (d/C - 1/2) + 1/2, 0, 1)``.
-_RAMP = 1.5
-#: Trimmed moments: iterations, and the distance (px) beyond the moment ellipse from which
-#: the region is dropped.
-_TRIM_ITERS = 3
-_TRIM_MARGIN = 1.0
 #: Pixels beyond the core that steps 3-6 read: the band's outer radius and the 3x3 mean
 #: around it.
 _CROP_MARGIN = _BAND[1] + 1
@@ -97,10 +91,15 @@ def fit_outlines(st: LevelSearch, sel: np.ndarray, *, polarity: int, min_core: n
     return fit_outline_parts([(st, sel, min_core)], polarity=polarity)[0]
 
 
-def fit_outline_parts(parts: list[tuple[LevelSearch, np.ndarray, np.ndarray]], *, polarity: int) -> list[PatchFit]:
+def fit_outline_parts(parts: list[tuple[LevelSearch, np.ndarray, np.ndarray]], *, polarity: int,
+                      compiled: bool = True) -> list[PatchFit]:
     """:func:`fit_outlines` of several ``(search, sel, min_core)`` at once (searches of any
-    patch sizes): the patches of all of them, cropped to their cores' neighbourhoods, are
-    fitted in one batch per window size. Returns one :class:`PatchFit` per part."""
+    patch sizes). Returns one :class:`PatchFit` per part.
+
+    ``compiled``: one call of the compiled kernel
+    (:func:`~carapost.core.blob_kernels_outline.outline_step`) per part, which visits only
+    each core's neighbourhood; else the numpy reference: the patches of all parts, cropped to
+    their cores' neighbourhoods, fitted in one vectorised batch per window size."""
     K = len(LEVELS)
     thr = _thresholds()
     res, rows_of, kc_of, core_of, need_of = [], [], [], [], []
@@ -112,12 +111,26 @@ def fit_outline_parts(parts: list[tuple[LevelSearch, np.ndarray, np.ndarray]], *
         if (mc > 0).any():
             kmin = np.minimum(np.searchsorted(np.asarray(LEVELS), mc - 1e-9), K - 1)
             kc = np.where(mc > 0, np.maximum(kc, kmin), kc)
+        if compiled:
+            if len(rows):
+                out, ok, border = outline_step(st.pu, st.bad, st.sat, st.d0, st.lvl, st.L, st.area, st.sig0,
+                                               st.c0, st.k_found, st.has, rows, kc, polarity, st.half)
+                cols = np.ascontiguousarray(out.T)
+                if len(keep) == len(sel):                 # every patch has a peak: the kernel's rows
+                    res[-1] = PatchFit(**dict(zip(OUTPUT_FIELDS, cols)), ok=ok, border=border)
+                else:
+                    r = res[-1]
+                    for name, col in zip(OUTPUT_FIELDS, cols):
+                        getattr(r, name)[keep] = col
+                    r.ok[keep] = ok
+                    r.border[keep] = border
+            continue
         core = st.L[rows] >= thr[kc][:, None, None]
         rows_of.append((keep, rows))
         kc_of.append(kc)
         core_of.append(core)
         need_of.append(crop_need(core, st.half))
-    if not any(len(v) for v in need_of):
+    if compiled or not any(len(v) for v in need_of):
         return res
     part = np.concatenate([np.full(len(v), i) for i, v in enumerate(need_of)])
     pos = np.concatenate([np.arange(len(v)) for v in need_of])
@@ -302,10 +315,6 @@ def _outline(arr: dict[str, np.ndarray], half: int, polarity: int) -> dict[str, 
     return out
 
 
-#: Angular sectors of the local background, and the highest level (fraction of the dot's
-#: full contrast) a sector's background may take.
-_N_SECTORS = 8
-_MAX_SECTOR_LEVEL = 0.7
 
 
 def _diamond_angle(ux: np.ndarray, uy: np.ndarray) -> np.ndarray:

@@ -169,13 +169,23 @@ class Patches:
 
 
 def extract_patches(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, half: int, *,
-                    bad: np.ndarray | None = None, saturated: tuple[int, int] | None = None) -> Patches:
+                    bad: np.ndarray | None = None, saturated: tuple[int, int] | None = None,
+                    compiled: bool = True) -> Patches:
     """Patches of ``img`` (uint8 (H, W)) centred on pixels ``cx, cy`` (int (N,)).
 
     Patches crossing the image border are clamped and their outside pixels marked bad;
     ``bad`` (bool (H, W)) adds the user's mask; ``saturated`` is the value range ``(lo, hi)``
-    of saturated pixels (white blobs), or None.
+    of saturated pixels (white blobs), or None. ``compiled``: one call of
+    :func:`carapost.core.blob_kernels.patch_step` (the same patches), else numpy indexing.
     """
+    if compiled:
+        from .blob_kernels import patch_step
+
+        m = np.zeros((0, 0), bool) if bad is None else np.ascontiguousarray(bad, bool)
+        lo, hi = (1, 0) if saturated is None else (int(saturated[0]), int(saturated[1]))
+        pu, badp, satp = patch_step(np.ascontiguousarray(img), np.asarray(cx, np.int64), np.asarray(cy, np.int64),
+                                    int(half), m, lo, hi)
+        return Patches(pu, badp, satp, half)
     H, W = img.shape
     n = len(cx)
     S = 2 * half + 1

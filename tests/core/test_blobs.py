@@ -542,7 +542,8 @@ def test_outlines_on_cropped_windows_equal_whole_patches(monkeypatch):
                            max_radius=np.full(len(cx), 14.0), pixel_noise=np.full(len(cx), 2.0))
         sel = np.flatnonzero(st.has)
         parts.append((st, st.alive[sel], np.where(np.arange(len(sel)) % 3 == 0, 0.9, 0.0)))
-    cropped = blob_outline.fit_outline_parts(parts, polarity=BLACK)
+    # the numpy reference path (the compiled kernel is checked against it in test_blob_kernels.py)
+    cropped = blob_outline.fit_outline_parts(parts, polarity=BLACK, compiled=False)
     # Most windows are smaller than their patches (the 18 px patches hold 2-5 px dots).
     from carapost.core.blob_fit import _thresholds
 
@@ -552,7 +553,7 @@ def test_outlines_on_cropped_windows_equal_whole_patches(monkeypatch):
     halves = np.concatenate([np.full(len(s), st.half) for st, s, _ in parts])
     assert (blob_outline._batch_sizes(need, halves) < halves).sum() > 50
     monkeypatch.setattr(blob_outline, "_CROP_MARGIN", 1000)           # every window = its whole patch
-    whole = [blob_outline.fit_outlines(st, sel, polarity=BLACK, min_core=mc) for st, sel, mc in parts]
+    whole = [blob_outline.fit_outline_parts([part], polarity=BLACK, compiled=False)[0] for part in parts]
     for a, b in zip(cropped, whole):
         assert a.ok.sum() > 10 and np.array_equal(a.ok, b.ok)
         for name in ("x", "y", "major", "minor", "contrast", "background", "noise", "shape_residual",

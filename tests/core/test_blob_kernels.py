@@ -1,0 +1,229 @@
+"""The compiled kernels of the blob fit (carapost/core/blob_kernels*.py) against the numpy
+versions they replace, on random patches and on the patches of rendered frames."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from blob_images import RenderConfig, render_frame
+
+from carapost.core import blob_kernels as K
+from carapost.core.blob_candidates import climb, signed_image
+from carapost.core.blob_fit import (LEVELS, _flood, _plane_fit, _prefer_informative, _thresholds, search_levels)
+from carapost.core.blob_outline import fit_outline_parts
+from carapost.core.blob_patches import box3, dot_rows, extract_patches, patch_grid
+
+BLACK, WHITE = -1, 1
+
+
+def _dot_patches(n: int, half: int, seed: int) -> np.ndarray:
+    """uint8 (n, S, S): blurred elliptic dots of random size, contrast and offset on a shaded,
+    noisy background, some next to a band, some clipped (the kinds of patch the fit sees)."""
+    rng = np.random.default_rng(seed)
+    s = 2 * half + 1
+    off = np.arange(s) - half
+    y, x = np.meshgrid(off, off, indexing="ij")
+    out = np.empty((n, s, s), np.uint8)
+    for k in range(n):
+        a, b = rng.uniform(1.5, 0.6 * half, 2)
+        th = rng.uniform(0, np.pi)
+        cx, cy = rng.uniform(-1.5, 1.5, 2)
+        u = (x - cx) * np.cos(th) + (y - cy) * np.sin(th)
+        v = -(x - cx) * np.sin(th) + (y - cy) * np.cos(th)
+        dot = 1.0 / (1.0 + np.exp(4.0 * (np.sqrt((u / a) ** 2 + (v / b) ** 2) - 1.0)))
+        img = rng.uniform(40, 180) + rng.uniform(-3, 3) * x + rng.uniform(-3, 3) * y
+        img = img + rng.uniform(15, 120) * dot + rng.normal(0, rng.uniform(0.5, 6), (s, s))
+        if k % 4 == 1:                                            # a band through the dot
+            img += rng.uniform(10, 60) * (np.abs(y - x * rng.uniform(-1, 1) - cy) < rng.uniform(1, 3))
+        if k % 7 == 3:                                            # clipped
+            img = img * 1.8
+        out[k] = np.clip(img, 0, 255).astype(np.uint8)
+    return out
+
+
+def _search_levels_numpy(pu, bad, sat, radius, half, max_radius, pixel_noise):
+    """Steps 1-2 of the fit as vectorised numpy (the version the kernels replaced): ring plane,
+    peak, flood levels (run to convergence) and level search. Returns a dict of arrays over
+    all patches."""
+    n = len(pu)
+    S = 2 * half + 1
+    dy, dx, dxf, dyf, mono, edge = patch_grid(half)
+    p = pu.astype(np.float32)
+    dead = (pu <= 4) | (pu >= 251)
+    rho2 = (dxf * dxf + dyf * dyf)[None]
+    r0 = np.asarray(radius, np.float32)[:, None, None]
+    r_in = np.minimum(1.5 * r0 + 1.5, half - 1.5)
+    ring = _prefer_informative((rho2 >= r_in * r_in) & (rho2 <= float(half * half)) & ~bad & ~sat, dead)
+    d0, sig0, n0, c0 = _plane_fit(p, ring, mono, iters=1)
+    ds = box3(d0)
+    near = rho2 <= np.maximum(1.5, 0.5 * r0) ** 2
+    flat = np.where(near, ds, -np.inf).reshape(n, -1)
+    pk = np.argmax(flat, axis=1)
+    peak = flat[np.arange(n), pk].astype(np.float64)
+    pky, pkx = np.divmod(pk, S)
+    scale = (200.0 / peak).astype(np.float32)[:, None, None]
+    lvl = np.clip(ds * scale, 0, 255).astype(np.uint8)
+    thr = _thresholds()
+    L = _flood(lvl, pky, pkx, 10 * S, int(thr[0]) - 1)           # to convergence: exact
+    masks = (L.reshape(n, -1)[:, None, :] >= thr[None, :, None]).astype(np.float32)
+    m = dot_rows(masks.reshape(n * len(thr), -1), mono[:, :6]).reshape(n, len(thr), 6).astype(np.float64)
+    area = m[..., 0]
+    a_s = np.maximum(area, 1.0)
+    vx = m[..., 3] / a_s - (m[..., 1] / a_s) ** 2 + 1.0 / 12.0
+    vy = m[..., 5] / a_s - (m[..., 2] / a_s) ** 2 + 1.0 / 12.0
+    vxy = m[..., 4] / a_s - m[..., 1] * m[..., 2] / (a_s * a_s)
+    fill = area / (4.0 * np.pi * np.sqrt(np.maximum(vx * vy - vxy * vxy, 1e-6)))
+    edge_max = L.reshape(n, -1)[:, edge.ravel()].max(axis=1)
+    valid = (edge_max[:, None] < thr[None]) & (area <= (np.pi * (1.3 * max_radius + 2.0) ** 2)[:, None])
+    noise_band = 1.0 - 4.0 * (pixel_noise / 3.0) / peak
+    shaped = np.asarray(LEVELS)[None] <= np.minimum(noise_band, 0.8)[:, None]
+    valid &= (fill >= 0.9) | (area < 20) | ~shaped
+    run = np.cumprod(valid[:, ::-1], axis=1)[:, ::-1].astype(bool)
+    has = run[:, -1]
+    k_found = np.where(has, np.argmax(run, axis=1), len(thr) - 1)
+    return dict(d0=d0, ds=ds, sig0=sig0, n0=n0, c0=c0, pk=pk, peak=peak, lvl=lvl, L=L, area=area, fill=fill,
+                valid=valid, k_found=k_found, has=has)
+
+
+@pytest.mark.parametrize("half", [8, 14])
+def test_plane_fit_kernel_equals_numpy(half):
+    """The robust plane of one patch over a random mask: residual, sigma, pixels used and
+    coefficients as the vectorised fit's (float32 rounding)."""
+    rng = np.random.default_rng(half)
+    s = 2 * half + 1
+    p = _dot_patches(40, half, seed=half).astype(np.float32)
+    mask = rng.random((40, s, s)) < 0.6
+    mono = patch_grid(half)[4]
+    resid, sigma, n_used, coef = _plane_fit(p, mask, mono, iters=1)
+    for k in range(40):
+        w = mask[k].astype(np.uint8)
+        out = np.zeros((s, s), np.float32)
+        sg, nu, c0, c1, c2 = K.plane_fit(p[k], w, half, 1, 0, s, 0, s, out)
+        assert nu == n_used[k]
+        np.testing.assert_allclose([sg, c0, c1, c2], [sigma[k], *coef[k]], rtol=1e-5, atol=1e-4)
+        np.testing.assert_allclose(out, resid[k], atol=1e-3)
+
+
+def test_box3_kernels_equal_opencv():
+    """The compiled 3x3 mean (a whole patch and single pixels) equals OpenCV's blur with a
+    constant border."""
+    rng = np.random.default_rng(0)
+    d = rng.normal(0, 50, (5, 17, 17)).astype(np.float32)
+    ref = box3(d)
+    for k in range(5):
+        out = np.zeros((17, 17), np.float32)
+        K.box3(d[k], out, 0, 17, 0, 17, np.zeros((19, 17)))
+        np.testing.assert_allclose(out, ref[k], rtol=1e-6, atol=1e-5)
+        for i, j in ((0, 0), (16, 3), (8, 8), (5, 16)):
+            assert abs(K.mean3(d[k], i, j) - ref[k, i, j]) <= 1e-5 * max(1.0, abs(ref[k, i, j]))
+
+
+@pytest.mark.parametrize("half", [8, 11, 18])
+def test_ring_and_level_steps_equal_numpy(half):
+    """Steps 1-2 (ring plane, peak, flood levels, per-level areas and fills, the core level
+    found) of random dot patches, some with bad and saturated pixels, as the vectorised numpy
+    version computes them."""
+    n = 120
+    rng = np.random.default_rng(half + 100)
+    pu = _dot_patches(n, half, seed=half + 7)
+    s = 2 * half + 1
+    bad = np.zeros((n, s, s), bool)
+    bad[::5, :, :3] = True                                         # patches at the image border
+    sat = (pu >= 250) & (np.arange(n) % 2 == 0)[:, None, None]
+    radius = rng.uniform(1.5, 0.5 * half, n).astype(np.float32)
+    max_radius = np.full(n, 0.8 * half)
+    pixel_noise = rng.uniform(0.5, 4.0, n)
+    ref = _search_levels_numpy(pu, bad, sat, radius, half, max_radius, pixel_noise)
+    d0, ds, sig0, n0, c0, pk, peak = K.ring_step(pu, bad, sat, radius, half)
+    np.testing.assert_allclose(d0, ref["d0"], atol=2e-3)
+    np.testing.assert_allclose(ds, ref["ds"], atol=2e-3)
+    np.testing.assert_allclose(sig0, ref["sig0"], rtol=1e-5, atol=1e-5)
+    np.testing.assert_allclose(c0, ref["c0"], rtol=1e-5, atol=1e-4)
+    assert np.array_equal(n0, ref["n0"]) and np.array_equal(pk, ref["pk"])
+    np.testing.assert_allclose(peak, ref["peak"], rtol=1e-5)
+    ok = (peak > sig0) & (peak > 0.5)
+    assert ok.sum() > 0.8 * n
+    a = np.flatnonzero(ok)
+    lvl, L, area, fill, edge_max, valid, k_found, has = K.level_step(ds[a], peak[a], pk[a], half, max_radius[a],
+                                                                     pixel_noise[a])
+    # The fixed-point levels may differ by one where float rounding crosses an integer.
+    assert np.abs(lvl.astype(int) - ref["lvl"][a]).max() <= 1
+    same = (lvl == ref["lvl"][a]).reshape(len(a), -1).all(axis=1)
+    assert same.mean() > 0.9
+    assert np.array_equal(L[same], ref["L"][a][same])
+    assert np.array_equal(area[same], ref["area"][a][same])
+    np.testing.assert_allclose(fill[same], ref["fill"][a][same], rtol=1e-9)
+    assert np.array_equal(k_found[same], ref["k_found"][a][same])
+    assert np.array_equal(has[same], ref["has"][a][same]) and has.sum() > 0.3 * len(a)
+
+
+def test_flood_kernel_is_the_exact_reconstruction():
+    """The priority flood of level_step equals the iterated clipped 3x3 dilation run to
+    convergence, on noisy patches with several bright structures (paths around obstacles)."""
+    rng = np.random.default_rng(3)
+    n, half = 60, 14
+    s = 2 * half + 1
+    ds = cv2.GaussianBlur(rng.normal(0, 1, (n * s, s)).astype(np.float32), (0, 0), 1.2).reshape(n, s, s)
+    ds = 60 + 200 * ds / np.abs(ds).max(axis=(1, 2), keepdims=True)
+    pk = np.argmax(ds.reshape(n, -1), axis=1)
+    peak = ds.reshape(n, -1)[np.arange(n), pk].astype(np.float64)
+    lvl, L = K.level_step(ds.astype(np.float32), peak, pk, half, np.full(n, 50.0), np.full(n, 1.0))[:2]
+    ref = _flood(lvl, pk // s, pk % s, 10 * s, 99)
+    assert np.array_equal(L, ref)
+    assert (L > 99).sum() > 20 * n
+
+
+@pytest.mark.parametrize("polarity", [BLACK, WHITE])
+def test_outline_kernel_equals_numpy(polarity):
+    """Steps 3-6 of the compiled kernel and of the numpy version (cropped windows, batches
+    per window size) on the patches of a rendered frame — dots, texture spots, merged pairs,
+    a saturated region, patches at the image border and next to a mask — with forced core
+    levels: every field agrees to float32 rounding and the same fits are rejected."""
+    cfg = RenderConfig(texture=0.12, size=(300, 400), n_dots=40, merged_pairs=4,
+                       polarity="white" if polarity > 0 else "black", saturated_region=polarity > 0)
+    fr = render_frame(cfg, seed=21)
+    sig = signed_image(fr.image, polarity)
+    rng = np.random.default_rng(2)
+    pts = np.concatenate([fr.xy, rng.uniform([0, 0], [400, 300], (80, 2))])
+    cx, cy = np.rint(pts[:, 0]).astype(np.int64), np.rint(pts[:, 1]).astype(np.int64)
+    cx, cy = np.clip(cx, 0, 399), np.clip(cy, 0, 299)
+    mask = np.zeros(sig.shape, bool)
+    mask[100:110, 150:220] = True
+    sat = (250, 255) if polarity > 0 else None
+    parts = []
+    for half, r in ((8, 2.0), (11, 4.0), (18, 8.0)):
+        pat = extract_patches(sig, cx, cy, half, bad=mask, saturated=sat)
+        st = search_levels(pat, np.full(len(cx), r), max_radius=np.full(len(cx), 14.0),
+                           pixel_noise=np.full(len(cx), 2.0))
+        sel = st.alive
+        parts.append((st, sel, np.where(np.arange(len(sel)) % 3 == 0, 0.9, 0.0)))
+    comp = fit_outline_parts(parts, polarity=polarity)
+    ref = fit_outline_parts(parts, polarity=polarity, compiled=False)
+    for a, b in zip(comp, ref):
+        assert a.ok.sum() > 10
+        assert np.array_equal(a.ok, b.ok) and np.array_equal(a.border, b.border)
+        for name in a.__dataclass_fields__:
+            if name in ("ok", "border"):
+                continue
+            np.testing.assert_allclose(getattr(a, name)[a.ok], getattr(b, name)[a.ok], rtol=1e-4, atol=1e-4,
+                                       err_msg=name)
+
+
+def test_patch_and_climb_kernels_equal_numpy():
+    """Patch extraction (clamped at the image border, a mask, saturated values) and the uphill
+    climb of the candidate grouping give what their numpy versions give."""
+    rng = np.random.default_rng(4)
+    img = cv2.GaussianBlur(rng.integers(0, 256, (120, 160)).astype(np.uint8), (0, 0), 2.0)
+    img[40:50, 60:75] = 255
+    mask = rng.random(img.shape) < 0.05
+    cx, cy = rng.integers(0, 160, 400), rng.integers(0, 120, 400)
+    for bad in (None, mask):
+        for sat in (None, (250, 255)):
+            a = extract_patches(img, cx, cy, 11, bad=bad, saturated=sat)
+            b = extract_patches(img, cx, cy, 11, bad=bad, saturated=sat, compiled=False)
+            assert all(np.array_equal(getattr(a, k), getattr(b, k)) for k in ("pu", "bad", "sat"))
+    a = climb(img, cx, cy)
+    b = climb(img, cx, cy, compiled=False)
+    assert all(np.array_equal(u, v) for u, v in zip(a, b))
+    assert (a[0] != cx).mean() > 0.5
