@@ -109,8 +109,10 @@ def _timed(fn):
     return out, time.process_time() - t0
 
 
-def _disputed(pts, labels, truth, group, M, reference: int, tau: float = 3.0, far: float = 1.5,
-              lower: float = 1.0, still: float = 5.0) -> dict:
+def _disputed(pts, labels, truth, group, M, reference: int, tau: float = 3.0, far: float = 2.5,
+              lower: float = 1.0, still: float = 5.0, apart: float = 50.0, window: int = 3,
+              jump: float = 3.0, tight_mm: float = 3.0, tight_rel: float = 0.03, own_z: float = 5.0,
+              samples: bool = False) -> dict:
     """Wrong samples where the file's label breaks the file's own shape and ours keeps it: the
     file, not the labeller, is likely wrong there.
 
@@ -122,22 +124,36 @@ def _disputed(pts, labels, truth, group, M, reference: int, tau: float = 3.0, fa
 
     *Over the take*: every pair's distance and spread learnt from the file's own labels over
     the whole take (:func:`~carapost.core.label_ranges.learn_ranges`, runs of presence of at
-    least 20 frames); a wrong sample is disputed when the mean over the markers present of
-    ``2 ln(1 + z^2)`` (the take check's Cauchy term, ``z`` the deviation from the file's
-    learnt distance in spreads) is above ``far`` under the file's labels and at least
+    least 20 frames); a wrong sample is disputed when the mean of ``2 ln(1 + z^2)`` (the take
+    check's Cauchy term, ``z`` the deviation from the file's learnt distance in spreads) over
+    the *agreed* points of the frame (those both labellings name alike, so that neither side's
+    disputed points are evidence) is above ``far`` under the file's label and at least
     ``lower`` below that under ours. This catches what the reference frame cannot: the file's
-    ForearmL Marker1/Marker4 of ``kinematics_basket_sprint`` exchanged at 361-363, 1036 and
-    2382-2458 (their distances to the upper arm 60-70 mm off the file's own).
+    ForearmL Marker1/Marker4 of ``kinematics_basket_sprint`` exchanged at 2382-2458 (their
+    distances to the upper arm's markers off the file's own).
 
     *Renamed points*: a wrong sample (file ``m``, ours ``L``) where the file's run of ``m``
     begins within ``still`` mm of where the file's ``L`` was in the frame before (or ends
-    within ``still`` mm of where its ``L`` is in the frame after): the file gave one point
-    another name, and we kept the first. ``kinematics_basket_sprint`` at 3202-3246: the
-    file's ArmL Marker2/Marker3 become ForearmL Marker4/Marker3 and back five times on
-    points that move 0.1-3.6 mm between those frames (the two clusters are 200-300 mm apart).
+    within ``still`` mm of where its ``L`` is in the frame after), and ``m`` and ``L`` are
+    markers at least ``apart`` mm apart (median over the take, so two markers that touch at
+    times - Facial-Sing's section4-1/4-2, 1.5 mm apart at 1078 - are no evidence): the file
+    gave one point another name, and we kept the first. ``kinematics_basket_sprint`` at
+    3202-3246: the file's ArmL Marker2/Marker3 become ForearmL Marker4/Marker3 and back five
+    times on points that move 0.1-3.6 mm between those frames (the two clusters are 200-300
+    mm apart).
+
+    *Jumps* are never disputed: a sample whose point is farther from our label's nearest
+    sample within ``window`` frames than ``jump`` x the file's 99th percentile of per-frame
+    motion per frame (``kinematics_basket_sprint`` at 2855: a wheel triplet we call the
+    upper arm's, 380-500 mm from where the arm was the frame before), nor one where our label
+    breaks a *tight* pair (learnt spread at most ``tight_mm`` + ``tight_rel`` x the distance)
+    with our own labels in the frame by more than ``own_z`` spreads (at 2806 we call a chair
+    point SWL Marker4, 800 mm from our WheelchairL Marker4 where the file keeps them 464 +-
+    6 mm apart): a dispute needs our labels to be possible.
 
     Returns the counts (``disputed``: near the reference frame, ``disputed_take``: any of
-    the three) and the accuracies with them left out.
+    the three) and the accuracies with them left out; with ``samples`` the wrong samples'
+    frames and points and their two dispute masks instead.
     """
     from carapost.core.label_ranges import learn_ranges, range_costs
     x = trajectories_from_labels(pts, truth, M)
@@ -155,13 +171,41 @@ def _disputed(pts, labels, truth, group, M, reference: int, tau: float = 3.0, fa
     pres = np.isfinite(x[..., 0])
     ranges = learn_ranges(x, np.where(pres, np.arange(M)[None], -1))
     no_tight = np.zeros((M, M), bool)
+    agreed = pres & np.all(x == ours, axis=-1)  # (F, M): both name the same point
 
-    def mean_far(xyz, k, lab):
-        P = xyz[k].copy()
+    def mean_far(k, lab):
+        P = np.where(agreed[k, :, None], x[k], np.nan)
         P[lab] = np.nan
         n = np.isfinite(P[:, 0]).sum()
         c = range_costs(pts[k, j_][None], P[None], ranges, tight=no_tight, labels=[lab])[1][0, 0]
         return c / n if n else 0.0
+
+    step = np.linalg.norm(np.diff(x, axis=0), axis=-1)
+    vmax = jump * float(np.percentile(step[np.isfinite(step)], 99)) if np.isfinite(step).any() else np.inf
+    ours_pres = np.isfinite(ours[..., 0])
+
+    def jumps(k, L):
+        """Our label's nearest own sample within ``window`` frames is out of reach."""
+        for dk in range(1, window + 1):
+            near = [kk for kk in (k - dk, k + dk) if 0 <= kk < F and ours_pres[kk, L]]
+            if near:
+                return min(np.linalg.norm(ours[kk, L] - pts[k, j_]) for kk in near) > vmax * dk
+        return False
+
+    tight = ranges.spread <= tight_mm + tight_rel * np.nan_to_num(ranges.dist, nan=np.inf)
+
+    def breaks_own(k, L):
+        """Our label breaks a tight pair (file-learnt) with our own labels in the frame."""
+        q = np.flatnonzero(tight[L] & ours_pres[k])
+        q = q[q != L]
+        if not q.size:
+            return False
+        z = (np.linalg.norm(ours[k, q] - pts[k, j_], axis=-1) - ranges.dist[L, q]) / ranges.spread[L, q]
+        return bool(np.abs(z).max() > own_z)
+
+    def apart_mm(m, L):
+        both = pres[:, m] & pres[:, L]
+        return float(np.median(np.linalg.norm(x[both, m] - x[both, L], axis=-1))) if both.any() else 0.0
 
     # the file's runs of presence: where each marker's run starts and ends (frame of each sample)
     run_start = np.zeros((F, M), np.int64)
@@ -178,17 +222,24 @@ def _disputed(pts, labels, truth, group, M, reference: int, tau: float = 3.0, fa
         """The file's run of ``m`` through frame ``k`` starts (ends) within ``still`` mm of
         where its ``L`` ended (starts) in the frame before (after): one point, renamed."""
         a, b = run_start[k, m], run_end[k, m]
+        if apart_mm(m, L) < apart:
+            return False
         return bool((a > 0 and pres[a - 1, L] and np.linalg.norm(x[a - 1, L] - x[a, m]) <= still)
                     or (b < F - 1 and pres[b + 1, L] and np.linalg.norm(x[b + 1, L] - x[b, m]) <= still))
 
     take = disp.copy()
+    far_cost = np.full((len(f), 2), np.nan)
     for i, (k, j_) in enumerate(zip(f.tolist(), j.tolist())):
-        if not take[i]:
-            m, L = int(truth[k, j_]), int(labels[k, j_])
-            ff, fo = mean_far(x, k, m), mean_far(ours, k, L)
+        m, L = int(truth[k, j_]), int(labels[k, j_])
+        if jumps(k, L) or breaks_own(k, L):
+            disp[i] = take[i] = False
+        elif not take[i]:
+            ff, fo = far_cost[i] = mean_far(k, m), mean_far(k, L)
             take[i] = (ff > far and fo <= ff - lower) or renamed(k, m, L)
     n_all = int(is_m.sum())
     n_disp, n_take = int(disp.sum()), int(take.sum())
+    if samples:  # the wrong samples (frame, point) and which of them are disputed, for audits
+        return {"frame": f, "point": j, "disputed": disp, "disputed_take": take, "far_cost": far_cost}
     return {"disputed": n_disp, "accuracy_undisputed": round(int(same.sum()) / max(n_all - n_disp, 1), 6),
             "disputed_take": n_take,
             "accuracy_undisputed_take": round(int(same.sum()) / max(n_all - n_take, 1), 6)}
@@ -212,7 +263,8 @@ def _methods(pts, truth, h, M, skeleton=None, group=None, reference=None, names=
                          "unseen_named": r.report.get("unseen_named", 0),
                          "attached_relabelled": r.report.get("attached_relabelled", 0),
                          "take_renamed": r.report.get("take_renamed", 0),
-                         "range_renamed": r.report.get("range_named", 0) + r.report.get("range_unnamed", 0)}
+                         "range_renamed": r.report.get("range_named", 0) + r.report.get("range_unnamed", 0),
+                         "motion_bridged": r.report.get("motion_bridged", 0)}
     if reference is not None:
         out["assignment"].update(_disputed(pts, r.labels, truth, group, M, reference))
     if names is not None and group is not None:

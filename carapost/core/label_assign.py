@@ -446,7 +446,10 @@ def _take_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: n
     confirmed (:func:`~carapost.core.label_rigid.rigid_relabel`, one vote enough, coverage
     over the frames a fit could judge, ties of near-symmetric clusters broken by the learnt
     distances to confirmed and ungrouped markers), then ``rounds`` passes of
-    :func:`~carapost.core.label_ranges.range_relabel`. Returns the labels and the report."""
+    :func:`~carapost.core.label_ranges.range_relabel`, then the short pieces named by the
+    motion they continue (:func:`~carapost.core.label_motion.motion_bridge`). Returns the
+    labels and the report."""
+    from .label_motion import fitting_samples, motion_bridge
     from .label_ranges import learn_ranges, range_relabel, range_tiebreak, take_groups
     from .label_rigid import rigid_relabel
     rep = {"take_renamed": 0, "range_named": 0, "range_unnamed": 0}
@@ -467,6 +470,10 @@ def _take_check(pts: np.ndarray, labels: np.ndarray, tracks: Tracklets, hints: n
         rep["range_unnamed"] += nu
         if nn + nu == 0:
             break
+    short = (tracks.end - tracks.start < 3)[np.maximum(tracks.tid, 0)] & (tracks.tid >= 0)
+    anchors = fitting_samples(pts, labels, short, model.dist, model.spread)
+    labels, rep["motion_bridged"] = motion_bridge(pts, labels, tracks.tid, n_markers, protected=prot,
+                                                  anchors=anchors)
     return labels, rep
 
 
