@@ -298,12 +298,15 @@ def find_candidates(levels: list[ResponseLevel], *, min_snr: float, polarity: in
         outer = lv.outer.ravel()
         for m, side, r, spread in zip(lv.per_scale, lv.sides, lv.radius, lv.spread):
             k = 3 if side <= 3 else 5
-            peak = (m >= cv2.dilate(m, np.ones((k, k), np.uint8))) & (m > min_snr)
-            peak[0], peak[-1], peak[:, 0], peak[:, -1] = False, False, False, False
-            pk = np.flatnonzero(peak)
+            # Pixels above the threshold, off the border, that are the maximum of their
+            # neighbourhood (the threshold first: few pixels pass it).
+            mf = m.ravel()
+            pk = np.flatnonzero(m[1:-1, 1:-1] > min_snr)
+            pk = (pk // (w - 2) + 1) * w + pk % (w - 2) + 1
+            pk = pk[mf[pk] >= cv2.dilate(m, np.ones((k, k), np.uint8)).ravel()[pk]]
             if len(pk) == 0:
                 continue
-            val = m.ravel()[pk].astype(np.float64)
+            val = mf[pk].astype(np.float64)
             if min_weber > 0:
                 bg = outer[pk] * (1.0 / (OUTER_SIDE * OUTER_SIDE))
                 bg = np.minimum(bg, 255.0 - bg) if polarity > 0 else 255.0 - bg

@@ -70,22 +70,27 @@ def _disc_radii() -> np.ndarray:
 _DISC_R = _disc_radii()
 
 
+def _disc_spans() -> np.ndarray:
+    """``(5, 5)`` int64: the half-width of row ``dy`` (0..4) of the union of the discs of radius
+    up to ``r`` (0..4) in :data:`_DISC_R` (each row is one centred run), -1 where empty."""
+    out = np.full((5, 5), -1, np.int64)
+    for r in range(1, 5):
+        for dy in range(5):
+            dx = np.flatnonzero(_DISC_R[4 + dy] <= r) - 4
+            if len(dx):
+                assert np.array_equal(dx, np.arange(-dx.max(), dx.max() + 1))
+                out[r, dy] = dx.max()
+    return out
+
+
+_DISC_SPAN = _disc_spans()
+
+
 @nb.njit(**_INLINE)
-def _moments(q, half, y0, y1, x0, x1):
-    """Mass, centroid and second central moments (float64) of ``q`` over a box."""
-    m0 = m1 = m2 = m3 = m4 = m5 = 0.0
-    for i in range(y0, y1):
-        y = float(i - half)
-        for j in range(x0, x1):
-            v = float(q[i, j])
-            if v != 0.0:
-                x = float(j - half)
-                m0 += v
-                m1 += v * x
-                m2 += v * y
-                m3 += v * x * x
-                m4 += v * x * y
-                m5 += v * y * y
+def _moment_stats(m0, m1, m2, m3, m4, m5):
+    """Mass, centroid and second central moments ``(m0, mx, my, cxx, cxy, cyy)`` (float64)
+    from the sums of ``q``, ``q x``, ``q y``, ``q x^2``, ``q x y``, ``q y^2`` over a region
+    (offsets from the patch centre)."""
     m0s = max(m0, 1e-9)
     mx, my = m1 / m0s, m2 / m0s
     cxx = max(m3 / m0s - mx * mx, 1e-6)
@@ -139,20 +144,88 @@ def _core_box(Lr, thr, core):
 
 
 @nb.njit(**_JIT)
-def _band_and_region(core, lvlr, pur, badr, satr, thr, disc_r, others, grow, band, win,
+def _band_and_region(core, lvlr, pur, badr, satr, thr, disc_r, others, grow, band, win, rowbits, dilbits,
                      cy0, cy1, cx0, cx1, y0, y1, x0, x1, by0, by1, bx0, bx1):
     """Step 3's band (2-4 px around the core, not bad or saturated, preferring pixels that
     are not black or clipped) into ``band`` (uint8) and the fitted region's window (3 px)
     into ``win``, both leaving out other bright structures (pixels above the core level not
-    connected to it, grown by the 3x3 cross)."""
-    s = core.shape[0]
+    connected to it, grown by the 3x3 cross). ``grow (S, S)``, ``rowbits (S, 5)`` and
+    ``dilbits (S, 3)`` (uint64) are work space."""
     for i in range(y0, y1):
         for j in range(x0, x1):
             others[i, j] = lvlr[i, j] >= thr and not core[i, j]
+    # The core's dilations by the discs of radius 2, 3, 4: as bit masks of the band box's
+    # columns when it has at most 64, else stamped as the smallest radius reaching each pixel.
+    bits = bx1 - bx0 <= 64
+    if bits:
+        _grow_bits(core, rowbits, dilbits, cy0, cy1, cx0, cx1, by0, by1, bx0)
+    else:
+        _grow_stamped(core, disc_r, grow, cy0, cy1, cx0, cx1, y0, y1, x0, x1)
+    n_band = 0
+    n_info = 0
+    for i in range(by0, by1):
+        d2, d3, d4 = dilbits[i, 0], dilbits[i, 1], dilbits[i, 2]
+        for j in range(bx0, bx1):
+            o1 = others[i, j] or (i > y0 and others[i - 1, j]) or (i < y1 - 1 and others[i + 1, j]) \
+                or (j > x0 and others[i, j - 1]) or (j < x1 - 1 and others[i, j + 1])
+            if bits:
+                bit = np.uint64(1) << np.uint64(j - bx0)
+                in2, in3, in4 = (d2 & bit) != 0, (d3 & bit) != 0, (d4 & bit) != 0
+            else:
+                g = grow[i, j]
+                in2, in3, in4 = g <= _BAND_IN, g <= _WIN, g <= _BAND_OUT
+            bd = in4 and not in2 and not o1 and not badr[i, j] and not satr[i, j]
+            band[i, j] = 1 if bd else 0
+            win[i, j] = in3 and not o1
+            if bd:
+                n_band += 1
+                if _FLAT_LO < pur[i, j] < _FLAT_HI:
+                    n_info += 1
+    if n_info >= 10 and 3 * n_info >= n_band:
+        for i in range(by0, by1):
+            for j in range(bx0, bx1):
+                if band[i, j] and not (_FLAT_LO < pur[i, j] < _FLAT_HI):
+                    band[i, j] = 0
+
+
+@nb.njit(**_INLINE)
+def _grow_bits(core, rowbits, dilbits, cy0, cy1, cx0, cx1, by0, by1, bx0):
+    """The core's dilations by the discs of radius 2, 3 and 4 (:data:`_DISC_R`) on the rows
+    ``by0:by1``, as bit masks of the columns ``bx0 ..`` into ``dilbits[:, 0..2]``: per core row
+    its horizontal dilations by 0..4 px (``rowbits``), then per row the union of those that
+    the discs' rows ask of the core rows within reach (:data:`_DISC_SPAN`)."""
+    one = np.uint64(1)
+    for i in range(cy0, cy1):
+        m = np.uint64(0)
+        for j in range(cx0, cx1):
+            if core[i, j]:
+                m |= one << np.uint64(j - bx0)
+        h = m
+        rowbits[i, 0] = m
+        for w in range(1, 5):
+            h = h | (m << np.uint64(w)) | (m >> np.uint64(w))
+            rowbits[i, w] = h
+    for a in range(by0, by1):
+        for rr in range(3):
+            r = rr + 2
+            acc = np.uint64(0)
+            for i in range(max(a - r, cy0), min(a + r + 1, cy1)):
+                w = _DISC_SPAN[r, abs(i - a)]
+                if w >= 0:
+                    acc |= rowbits[i, w]
+            dilbits[a, rr] = acc
+
+
+@nb.njit(**_JIT)
+def _grow_stamped(core, disc_r, grow, cy0, cy1, cx0, cx1, y0, y1, x0, x1):
+    """The smallest disc radius (1..4, :data:`_DISC_R`; 99: none) whose dilation of the core
+    reaches each pixel, into ``grow`` (stamped from the core's boundary pixels only: a pixel
+    of the dilation by an orthogonally convex disc is within the disc of a core pixel that
+    has a 4-neighbour outside the core)."""
+    s = core.shape[0]
+    for i in range(y0, y1):
+        for j in range(x0, x1):
             grow[i, j] = 99
-    # The discs' dilation of the core: stamped from its boundary pixels only (a pixel of the
-    # dilation by an orthogonally convex disc is within the disc of a core pixel that has a
-    # 4-neighbour outside the core).
     for i in range(cy0, cy1):
         for j in range(cx0, cx1):
             if core[i, j]:
@@ -165,25 +238,6 @@ def _band_and_region(core, lvlr, pur, badr, satr, thr, disc_r, others, grow, ban
                         rr = disc_r[a - i + 4, b - j + 4]
                         if rr < grow[a, b]:
                             grow[a, b] = rr
-    n_band = 0
-    n_info = 0
-    for i in range(by0, by1):
-        for j in range(bx0, bx1):
-            o1 = others[i, j] or (i > y0 and others[i - 1, j]) or (i < y1 - 1 and others[i + 1, j]) \
-                or (j > x0 and others[i, j - 1]) or (j < x1 - 1 and others[i, j + 1])
-            g = grow[i, j]
-            bd = g <= _BAND_OUT and g > _BAND_IN and not o1 and not badr[i, j] and not satr[i, j]
-            band[i, j] = 1 if bd else 0
-            win[i, j] = g <= _WIN and not o1
-            if bd:
-                n_band += 1
-                if _FLAT_LO < pur[i, j] < _FLAT_HI:
-                    n_info += 1
-    if n_info >= 10 and 3 * n_info >= n_band:
-        for i in range(by0, by1):
-            for j in range(bx0, bx1):
-                if band[i, j] and not (_FLAT_LO < pur[i, j] < _FLAT_HI):
-                    band[i, j] = 0
 
 
 @nb.njit(**_INLINE)
@@ -200,10 +254,11 @@ def _peak_mean(d, core, cy0, cy1, cx0, cx1):
 
 
 @nb.njit(**_JIT)
-def _saturation(d, win, badr, satr, half_c, hr, h2, wy0, wy1, wx0, wx1):
+def _saturation(d, win, badr, satr, half_c, hr, h2, rowbits, wy0, wy1, wx0, wx1):
     """Whether a pixel of the window is bad, and the fraction of the half-contrast region's
     rim (its dilation by the radius-2 disc, less itself) that is saturated (0 when no
-    saturated pixel is near it). Fills ``hr`` (the region) in the window box."""
+    saturated pixel is near it). Fills ``hr`` (the region) in the window box; ``h2 (S, S)``
+    and ``rowbits (S, >= 2)`` are work space."""
     s = d.shape[0]
     masked = False
     hy0, hy1, hx0, hx1 = s, -1, s, -1
@@ -230,6 +285,8 @@ def _saturation(d, win, badr, satr, half_c, hr, h2, wy0, wy1, wx0, wx1):
                 any_sat = True
     if not any_sat:
         return masked, 0.0
+    if rx1 - rx0 <= 64:
+        return masked, _rim_bits(hr, satr, rowbits, ry0, ry1, rx0, rx1)
     # The disc: rows -1..1 span 5 columns, rows -2 and 2 one (from the horizontal dilation).
     for i in range(ry0, ry1):
         for j in range(rx0, rx1):
@@ -252,19 +309,62 @@ def _saturation(d, win, badr, satr, half_c, hr, h2, wy0, wy1, wx0, wx1):
     return masked, n_sat / max(n_rim, 1)
 
 
+@nb.njit(**_INLINE)
+def _grey_level(pur, d, polarity, i, j):
+    """The local background's grey level at pixel ``(i, j)`` (at least 1; for black dots its
+    distance from white), float32."""
+    g = np.float32(pur[i, j]) - d[i, j]
+    if polarity <= 0:
+        g = np.float32(255.0) - g
+    return max(g, np.float32(1.0))
+
+
+@nb.njit(**_INLINE)
+def _rim_bits(hr, satr, rowbits, ry0, ry1, rx0, rx1):
+    """:func:`_saturation`'s rim fraction with the rows of the region ``hr`` as bit masks of
+    the rim box's columns (at most 64): each row's horizontal dilation by 2 px, OR-ed over the
+    disc's rows (-1..1 that, -2 and 2 the row itself)."""
+    one = np.uint64(1)
+    for i in range(ry0, ry1):
+        m = np.uint64(0)
+        for j in range(rx0, rx1):
+            if hr[i, j]:
+                m |= one << np.uint64(j - rx0)
+        rowbits[i, 0] = m
+        rowbits[i, 1] = m | (m << one) | (m >> one) | (m << np.uint64(2)) | (m >> np.uint64(2))
+    n_rim = 0
+    n_sat = 0
+    for i in range(ry0, ry1):
+        rim = rowbits[i, 1]
+        if i > ry0:
+            rim |= rowbits[i - 1, 1]
+        if i < ry1 - 1:
+            rim |= rowbits[i + 1, 1]
+        if i - 2 >= ry0:
+            rim |= rowbits[i - 2, 0]
+        if i + 2 < ry1:
+            rim |= rowbits[i + 2, 0]
+        rim &= ~rowbits[i, 0]
+        if rim == 0:
+            continue
+        for j in range(rx0, rx1):
+            if rim & (one << np.uint64(j - rx0)):
+                n_rim += 1
+                if satr[i, j]:
+                    n_sat += 1
+    return n_sat / max(n_rim, 1)
+
+
 @nb.njit(**_JIT)
-def _coverage(pur, d, core, polarity, half, bg, e, cov, cy0, cy1, cx0, cx1, y0, y1, x0, x1):
+def _coverage(pur, d, core, polarity, half, e, cov, cy0, cy1, cx0, cx1, y0, y1, x0, x1):
     """Step 4: the signal over the dot's full contrast ``cov`` (a fraction of the local
     background's grey level; a white dot cannot rise above 255). Returns the core's centroid
     (float32 offsets from the patch centre)."""
-    for i in range(y0, y1):
-        for j in range(x0, x1):
-            g = np.float32(pur[i, j]) - d[i, j]
-            if polarity <= 0:
-                g = np.float32(255.0) - g
-            g = max(g, np.float32(1.0))
-            bg[i, j] = g
-            e[i, j] = d[i, j] / g
+    s = d.shape[0]
+    # The peak of d over the background level: only the core's 3x3 means read it.
+    for i in range(max(cy0 - 1, 0), min(cy1 + 1, s)):
+        for j in range(max(cx0 - 1, 0), min(cx1 + 1, s)):
+            e[i, j] = d[i, j] / _grey_level(pur, d, polarity, i, j)
     Ce = _peak_mean(e, core, cy0, cy1, cx0, cx1)
     Cef = Ce if Ce > 0 else np.float32(1.0)
     mc0 = 0.0
@@ -272,9 +372,10 @@ def _coverage(pur, d, core, polarity, half, bg, e, cov, cy0, cy1, cx0, cx1, y0, 
     mcy = 0.0
     for i in range(y0, y1):
         for j in range(x0, x1):
-            full = bg[i, j] * Cef
+            g = _grey_level(pur, d, polarity, i, j)
+            full = g * Cef
             if polarity > 0:
-                full = min(full, np.float32(255.0) - bg[i, j])
+                full = min(full, np.float32(255.0) - g)
             cov[i, j] = d[i, j] / max(full, np.float32(1e-3))
             if core[i, j]:
                 mc0 += 1.0
@@ -339,13 +440,18 @@ def _sector_levels(cov, band, fcx, fcy, half, lv32, lev, cnt, valid, nl, nv, by0
 
 
 @nb.njit(**_JIT)
-def _soft_region(cov, win, lv32, fcx, fcy, half, q, wy0, wy1, wx0, wx1):
+def _soft_region(cov, win, lv32, fcx, fcy, half, q, qf, cut, wy0, wy1, wx0, wx1):
     """The soft half-contrast region ``q`` between the sector background (interpolated
-    linearly in angle) and the dot's top, in the window."""
+    linearly in angle) and the dot's top, in the window; a copy in ``qf`` and ``cut`` cleared
+    for :func:`_trimmed_moments`. Returns the region's :func:`_moment_stats`."""
     K = _N_SECTORS
+    m0 = m1 = m2 = m3 = m4 = m5 = 0.0
     for i in range(wy0, wy1):
+        y = float(i - half)
         for j in range(wx0, wx1):
             q[i, j] = 0.0
+            qf[i, j] = 0.0
+            cut[i, j] = False
             if not win[i, j]:
                 continue
             ang = _diamond(np.float32(j - half) - fcx, np.float32(i - half) - fcy) * np.float32(2.0)
@@ -356,20 +462,28 @@ def _soft_region(cov, win, lv32, fcx, fcy, half, q, wy0, wy1, wx0, wx1):
             bpix = (np.float32(1.0) - f) * lv32[k0] + f * lv32[(k0 + 1) % K]
             v = np.float32(_RAMP) * (cov[i, j] - bpix) / max(np.float32(1.0) - bpix, np.float32(1e-3)) \
                 + np.float32(0.5 - 0.5 * _RAMP)
-            q[i, j] = min(max(v, np.float32(0.0)), np.float32(1.0))
+            qv = min(max(v, np.float32(0.0)), np.float32(1.0))
+            q[i, j] = qv
+            qf[i, j] = qv
+            vv = float(qv)
+            if vv != 0.0:
+                x = float(j - half)
+                m0 += vv
+                m1 += vv * x
+                m2 += vv * y
+                m3 += vv * x * x
+                m4 += vv * x * y
+                m5 += vv * y * y
+    return _moment_stats(m0, m1, m2, m3, m4, m5)
 
 
 @nb.njit(**_JIT)
-def _trimmed_moments(q, qf, cut, half, wy0, wy1, wx0, wx1):
-    """Step 5: moments of ``q``, trimmed up to :data:`_TRIM_ITERS` times of the parts more
-    than :data:`_TRIM_MARGIN` px outside the moment ellipse (``q`` is left trimmed). Returns
-    the untrimmed mass and the trimmed ``(m0, mx, my, cxx, cxy, cyy)``."""
-    m0, mx, my, cxx, cxy, cyy = _moments(q, half, wy0, wy1, wx0, wx1)
+def _trimmed_moments(q, qf, cut, half, m0, mx, my, cxx, cxy, cyy, wy0, wy1, wx0, wx1):
+    """Step 5: moments of ``q`` (given untrimmed: ``m0 .. cyy``; ``qf`` its copy, ``cut``
+    clear), trimmed up to :data:`_TRIM_ITERS` times of the parts more than
+    :data:`_TRIM_MARGIN` px outside the moment ellipse (``q`` is left trimmed). Returns the
+    untrimmed mass and the trimmed ``(m0, mx, my, cxx, cxy, cyy)``."""
     m0_full = max(m0, 1e-9)
-    for i in range(wy0, wy1):
-        for j in range(wx0, wx1):
-            qf[i, j] = q[i, j]
-            cut[i, j] = False
     for _ in range(_TRIM_ITERS):
         ia, ib, ic, fx, fy = _ellipse_coef(mx, my, cxx, cxy, cyy)
         changed = False
@@ -384,10 +498,23 @@ def _trimmed_moments(q, qf, cut, half, wy0, wy1, wx0, wx1):
                     cut[i, j] = c
         if not changed:
             break
+        # The trimmed region and its moments in one pass.
+        s0 = s1 = s2 = s3 = s4 = s5 = 0.0
         for i in range(wy0, wy1):
+            y = float(i - half)
             for j in range(wx0, wx1):
-                q[i, j] = np.float32(0.0) if cut[i, j] else qf[i, j]
-        m0, mx, my, cxx, cxy, cyy = _moments(q, half, wy0, wy1, wx0, wx1)
+                qv = np.float32(0.0) if cut[i, j] else qf[i, j]
+                q[i, j] = qv
+                v = float(qv)
+                if v != 0.0:
+                    x = float(j - half)
+                    s0 += v
+                    s1 += v * x
+                    s2 += v * y
+                    s3 += v * x * x
+                    s4 += v * x * y
+                    s5 += v * y * y
+        m0, mx, my, cxx, cxy, cyy = _moment_stats(s0, s1, s2, s3, s4, s5)
     return m0_full, m0, mx, my, cxx, cxy, cyy
 
 
@@ -451,13 +578,14 @@ def outline_step(pu: np.ndarray, bad: np.ndarray, sat: np.ndarray, d0: np.ndarra
                   np.zeros((6, s, s), bool), np.zeros((2, s, s), np.uint8), np.zeros((s, s), np.int64),
                   np.zeros((6, s, s), np.float32), np.zeros((s + 2, s + 2), np.float32), np.zeros(K, np.float32),
                   np.zeros(K), np.zeros(K, np.int64), np.zeros(K, bool), np.zeros(K), np.zeros(K, bool),
-                  np.zeros(nb_max, np.int64), np.zeros(nb_max))
+                  np.zeros(nb_max, np.int64), np.zeros(nb_max), np.zeros((s, 5), np.uint64),
+                  np.zeros((s, 3), np.uint64))
     return out
 
 
 @nb.njit(**_JIT)
 def _outline_step(pu, bad, sat, d0, lvl, L, area, sig0, c0, k_found, has, rows, kc, polarity, half, disc_r,
-                  out, oks, border, wbool, wu8, grow, wf, q1, lv32, lev, cnt, valid, nl, nv, pc, ps):
+                  out, oks, border, wbool, wu8, grow, wf, q1, lv32, lev, cnt, valid, nl, nv, pc, ps, rowbits, dilbits):
     """:func:`outline_step` into ``out``, ``oks``, ``border``; the other arrays after them are
     work space (zero on entry; left zero where it matters: the row loop cleans what it
     reads)."""
@@ -481,7 +609,7 @@ def _outline_step(pu, bad, sat, d0, lvl, L, area, sig0, c0, k_found, has, rows, 
         ok = has[r]
         border[t] = not has[r]
         # 3. Local background: a plane on the band.
-        _band_and_region(core, lvl[r], pur, badr, satr, thr, disc_r, others, grow, band, win,
+        _band_and_region(core, lvl[r], pur, badr, satr, thr, disc_r, others, grow, band, win, rowbits, dilbits,
                          cy0, cy1, cx0, cx1, y0, y1, x0, x1, by0, by1, bx0, bx1)
         for i in range(y0, y1):
             for j in range(x0, x1):
@@ -497,14 +625,16 @@ def _outline_step(pu, bad, sat, d0, lvl, L, area, sig0, c0, k_found, has, rows, 
         ok = ok and C > 0
         Cs = np.float32(C if C > 0 else 1.0)
         # Rejections: masked pixels near the blob, saturation around it.
-        masked, sat_near = _saturation(d, win, badr, satr, np.float32(0.5) * Cs, hr, h2, wy0, wy1, wx0, wx1)
+        masked, sat_near = _saturation(d, win, badr, satr, np.float32(0.5) * Cs, hr, h2, rowbits, wy0, wy1,
+                                      wx0, wx1)
         ok = ok and not masked and sat_near <= _MAX_SATURATED_RIM
         # 4. Coverage, per-direction background, soft half-contrast region.
-        fcx, fcy = _coverage(pur, d, core, polarity, half, tmp, e, cov, cy0, cy1, cx0, cx1, y0, y1, x0, x1)
+        fcx, fcy = _coverage(pur, d, core, polarity, half, e, cov, cy0, cy1, cx0, cx1, y0, y1, x0, x1)
         sec_max = _sector_levels(cov, band, fcx, fcy, half, lv32, lev, cnt, valid, nl, nv, by0, by1, bx0, bx1)
-        _soft_region(cov, win, lv32, fcx, fcy, half, q, wy0, wy1, wx0, wx1)
+        m0, mx, my, cxx, cxy, cyy = _soft_region(cov, win, lv32, fcx, fcy, half, q, qf, cut, wy0, wy1, wx0, wx1)
         # 5. Ellipse and centre from the trimmed moments.
-        m0_full, m0, mx, my, cxx, cxy, cyy = _trimmed_moments(q, qf, cut, half, wy0, wy1, wx0, wx1)
+        m0_full, m0, mx, my, cxx, cxy, cyy = _trimmed_moments(q, qf, cut, half, m0, mx, my, cxx, cxy, cyy,
+                                                              wy0, wy1, wx0, wx1)
         m0s = max(m0, 1e-9)
         tr = 0.5 * (cxx + cyy)
         disc = math.sqrt(max(0.25 * (cxx - cyy) ** 2 + cxy ** 2, 0.0))

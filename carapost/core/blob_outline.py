@@ -23,7 +23,7 @@ from .blob_kernels_outline import (_BAND, _MAX_SATURATED_RIM, _MAX_SECTOR_LEVEL,
 from .blob_patches import box3, dilate, dilate_many, patch_grid
 from .blob_score import asymmetry, ellipse_distance, profile_rms, shape_residual
 
-__all__ = ["fit_outlines", "fit_outline_parts", "crop_need"]
+__all__ = ["fit_outlines", "fit_outline_parts", "outline_tables", "crop_need"]
 
 #: Pixels beyond the core that steps 3-6 read: the band's outer radius and the 3x3 mean
 #: around it.
@@ -91,6 +91,35 @@ def fit_outlines(st: LevelSearch, sel: np.ndarray, *, polarity: int, min_core: n
     return fit_outline_parts([(st, sel, min_core)], polarity=polarity)[0]
 
 
+def _core_levels(st: LevelSearch, sel: np.ndarray, min_core: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """For patches ``sel`` of ``st`` with lowest core levels ``min_core``: the positions in
+    ``sel`` of those with a peak, their rows in the search and their core level indices."""
+    keep, rows = st.rows(np.asarray(sel, np.int64))
+    kc = st.k_found[rows]
+    mc = np.asarray(min_core, float)[keep]
+    if (mc > 0).any():
+        kmin = np.minimum(np.searchsorted(np.asarray(LEVELS), mc - 1e-9), len(LEVELS) - 1)
+        kc = np.where(mc > 0, np.maximum(kc, kmin), kc)
+    return keep, rows, kc
+
+
+def outline_tables(parts: list[tuple[LevelSearch, np.ndarray, np.ndarray]], *, polarity: int
+                   ) -> list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
+    """:func:`fit_outline_parts` (compiled) as the kernel's tables: per part ``(keep, out, ok,
+    border)``, the positions in ``sel`` of the patches with a peak (int (M,)) and their
+    outputs ``out`` float64 (M, len(OUTPUT_FIELDS)) (columns
+    :data:`~carapost.core.blob_kernels_outline.OUTPUT_FIELDS`), ``ok``, ``border`` bool (M,)."""
+    res = []
+    for st, sel, min_core in parts:
+        keep, rows, kc = _core_levels(st, sel, min_core)
+        if len(rows):
+            res.append((keep, *outline_step(st.pu, st.bad, st.sat, st.d0, st.lvl, st.L, st.area, st.sig0, st.c0,
+                                            st.k_found, st.has, rows, kc, polarity, st.half)))
+        else:
+            res.append((keep, np.zeros((0, len(OUTPUT_FIELDS))), np.zeros(0, bool), np.zeros(0, bool)))
+    return res
+
+
 def fit_outline_parts(parts: list[tuple[LevelSearch, np.ndarray, np.ndarray]], *, polarity: int,
                       compiled: bool = True) -> list[PatchFit]:
     """:func:`fit_outlines` of several ``(search, sel, min_core)`` at once (searches of any
@@ -100,17 +129,11 @@ def fit_outline_parts(parts: list[tuple[LevelSearch, np.ndarray, np.ndarray]], *
     (:func:`~carapost.core.blob_kernels_outline.outline_step`) per part, which visits only
     each core's neighbourhood; else the numpy reference: the patches of all parts, cropped to
     their cores' neighbourhoods, fitted in one vectorised batch per window size."""
-    K = len(LEVELS)
     thr = _thresholds()
     res, rows_of, kc_of, core_of, need_of = [], [], [], [], []
     for st, sel, min_core in parts:
         res.append(PatchFit.empty(len(sel)))
-        keep, rows = st.rows(np.asarray(sel, np.int64))
-        kc = st.k_found[rows]
-        mc = np.asarray(min_core, float)[keep]
-        if (mc > 0).any():
-            kmin = np.minimum(np.searchsorted(np.asarray(LEVELS), mc - 1e-9), K - 1)
-            kc = np.where(mc > 0, np.maximum(kc, kmin), kc)
+        keep, rows, kc = _core_levels(st, sel, min_core)
         if compiled:
             if len(rows):
                 out, ok, border = outline_step(st.pu, st.bad, st.sat, st.d0, st.lvl, st.L, st.area, st.sig0,

@@ -137,48 +137,73 @@ def features(snr: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
         ``ctx_line``, ``ctx_inner`` (context rings, see :func:`carapost.core.blobs._context_ring`),
         ``found_level`` (core level found by the search; ``forced`` = ``core_level`` minus it,
         > 0 for an alternative outline).
+
+    The columns are assembled in one ``(F, N)`` block: the raw values, one clip with the
+    per-feature bounds (:data:`_FEATURE_BOUNDS`), one log of the logged rows, the products.
     """
-    def log(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
-        return np.log(np.clip(np.asarray(x, float), lo, hi))
+    def col(name: str) -> np.ndarray:
+        return np.asarray(m[name], float)
 
     snr = np.asarray(snr, float)
-    contrast = np.asarray(m["contrast"], float)
-    pix = np.maximum(np.asarray(m["pixel_noise"], float), 0.5)
-    ls = log(snr, 1.0, _SNR_CAP)
-    lp = log(contrast / pix, 1.0, _CNR_CAP)
-    lc = log(contrast / np.maximum(np.asarray(m["noise"], float), 0.5), 1.0, _CNR_CAP)
-    bg = np.asarray(m["background"], float)
+    X = np.empty((len(FEATURES), len(snr)))
+    contrast = col("contrast")
+    pix = np.maximum(col("pixel_noise"), 0.5)
+    bg = col("background")
     # A white dot cannot rise above 255: its room is the smaller of the background level
     # (paint multiplies the light) and the headroom to saturation.
-    bg = np.where(np.asarray(m["polarity"]) > 0, np.minimum(bg, 255.0 - bg), bg)
-    lw = log(contrast / np.maximum(bg, _MIN_BACKGROUND), 0.02, 3.0)
-    rise = np.clip(np.asarray(m["rise"], float), -1.0, 4.0)
-    core = np.asarray(m["core_level"], float)
-    shape = np.clip(np.asarray(m["shape"], float), 0.0, 1.0)
-    asym = np.clip(np.asarray(m["asymmetry"], float), 0.0, 1.0)
-    expected = pix ** 2 + (PROFILE_MODEL_ERROR * contrast) ** 2
-    chi = log(np.asarray(m["profile_rms"], float) ** 2 / expected, 0.1, 1e3)
-    aspect = np.asarray(m["minor"], float) / np.maximum(np.asarray(m["major"], float), 1e-6)
-    op = np.clip(np.asarray(m["open"], float), 0.0, 1.0)
-    kept = np.clip(np.asarray(m["kept"], float), 0.0, 1.0)
-    ar = np.clip(np.asarray(m["area_ratio"], float), 0.0, 1.0)
-    paint = np.clip(np.asarray(m["paint"], float), 0.0, 2.0)
-    sat = np.clip(np.asarray(m["saturated"], float), 0.0, 1.0)
-    major = np.asarray(m["major"], float)
-    lmaj = log(major, 1.0, 30.0)
-    lring = log(contrast / np.maximum(np.asarray(m["ring_noise"], float), 0.5), 1.0, _CNR_CAP)
-    lrw = log(np.asarray(m["ring_weber"], float), 0.01, 3.0)
-    level = np.clip(np.asarray(m["level"], float), 0.0, 3.0)
-    pol = np.asarray(m["polarity"], float)
-    bgl = np.clip(np.asarray(m["background"], float), 0.0, 255.0) / 255.0
-    return np.stack([
-        np.ones_like(snr), ls, lp, lc, lw, rise, core, shape, asym, chi, aspect,
-        lp * lp, lw * lw, asym * lp, chi * lp, shape * lp, op, kept, ar, op * op, op * lw,
-        paint, paint * paint, sat, lmaj, lring, lrw, level, pol, bgl,
-        np.clip(np.asarray(m["ctx_max"], float), -1.0, 2.0), np.clip(np.asarray(m["ctx_mean"], float), -1.0, 2.0),
-        np.clip(np.asarray(m["ctx_line"], float), -1.0, 2.0), np.clip(np.asarray(m["ctx_inner"], float), -1.0, 2.0),
-        np.clip(np.asarray(m["core_level"], float) - np.asarray(m["found_level"], float), 0.0, 1.0),
-    ], axis=1)
+    room = np.where(np.asarray(m["polarity"]) > 0, np.minimum(bg, 255.0 - bg), bg)
+    X[0] = 1.0
+    X[1] = snr
+    X[2] = contrast / pix
+    X[3] = contrast / np.maximum(col("noise"), 0.5)
+    X[4] = contrast / np.maximum(room, _MIN_BACKGROUND)
+    X[5] = col("rise")
+    X[6] = col("core_level")
+    X[7] = col("shape")
+    X[8] = col("asymmetry")
+    X[9] = col("profile_rms") ** 2 / (pix ** 2 + (PROFILE_MODEL_ERROR * contrast) ** 2)
+    X[10] = col("minor") / np.maximum(col("major"), 1e-6)
+    X[16] = col("open")
+    X[17] = col("kept")
+    X[18] = col("area_ratio")
+    X[21] = col("paint")
+    X[23] = col("saturated")
+    X[24] = col("major")
+    X[25] = contrast / np.maximum(col("ring_noise"), 0.5)
+    X[26] = col("ring_weber")
+    X[27] = col("level")
+    X[28] = col("polarity")
+    X[29] = bg
+    for i, name in enumerate(("ctx_max", "ctx_mean", "ctx_line", "ctx_inner")):
+        X[30 + i] = col(name)
+    X[34] = X[6] - col("found_level")
+    np.clip(X, _FEATURE_BOUNDS[0][:, None], _FEATURE_BOUNDS[1][:, None], out=X)
+    X[_FEATURE_LOGS] = np.log(X[_FEATURE_LOGS])
+    X[29] /= 255.0
+    lp, lw = X[2], X[4]
+    X[11], X[12], X[13], X[14], X[15] = lp * lp, lw * lw, X[8] * lp, X[9] * lp, X[7] * lp
+    X[19], X[20], X[22] = X[16] * X[16], X[16] * lw, X[21] * X[21]
+    return np.ascontiguousarray(X.T)
+
+
+def _bounds(spec: dict[str, tuple[float, float]], names: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Lower and upper clip bounds ``(F,)`` of the features ``names`` (unbounded where not in
+    ``spec``)."""
+    lo = np.array([spec.get(f, (-np.inf, np.inf))[0] for f in names])
+    hi = np.array([spec.get(f, (-np.inf, np.inf))[1] for f in names])
+    return lo, hi
+
+
+#: Clip bounds of the raw feature values (before their log where the name says ``log_``);
+#: products of features are computed after the clip.
+_FEATURE_BOUNDS = _bounds({
+    "log_snr": (1.0, _SNR_CAP), "log_cnr_pix": (1.0, _CNR_CAP), "log_cnr": (1.0, _CNR_CAP),
+    "log_weber": (0.02, 3.0), "rise": (-1.0, 4.0), "shape": (0.0, 1.0), "asymmetry": (0.0, 1.0),
+    "log_profile_chi2": (0.1, 1e3), "open": (0.0, 1.0), "kept": (0.0, 1.0), "area_ratio": (0.0, 1.0),
+    "paint": (0.0, 2.0), "saturated": (0.0, 1.0), "log_major": (1.0, 30.0), "log_cnr_ring": (1.0, _CNR_CAP),
+    "log_ring_weber": (0.01, 3.0), "level": (0.0, 3.0), "background": (0.0, 255.0), "ctx_max": (-1.0, 2.0),
+    "ctx_mean": (-1.0, 2.0), "ctx_line": (-1.0, 2.0), "ctx_inner": (-1.0, 2.0), "forced": (0.0, 1.0)}, FEATURES)
+_FEATURE_LOGS = np.array([i for i, f in enumerate(FEATURES) if f.startswith("log_") and "^" not in f and "*" not in f])
 
 
 #: Features of the gate: the cheap pre-score computed after the level search (steps 1-2 of
@@ -196,26 +221,43 @@ def gate_features(snr: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
     above the ring plane), ``ring_noise`` (its residual std), ``pixel_noise``, ``found_level``,
     ``core_area`` (full-resolution px^2), ``fill``; the candidate's ``radius`` (px) and
     ``level``; ``background`` (the ring plane at the centre, original grey levels), ``paint``
-    (as for :func:`features`, from the peak) and ``polarity``.
+    (as for :func:`features`, from the peak) and ``polarity``. Assembled like
+    :func:`features` (one clip, one log).
     """
-    def log(x, lo, hi):
-        return np.log(np.clip(np.asarray(x, float), lo, hi))
+    def col(name: str) -> np.ndarray:
+        return np.asarray(m[name], float)
 
     snr = np.asarray(snr, float)
-    peak = np.asarray(m["peak"], float)
-    bg = np.asarray(m["background"], float)
-    pol = np.asarray(m["polarity"], float)
+    G = np.empty((len(GATE_FEATURES), len(snr)))
+    peak = col("peak")
+    bg = col("background")
+    pol = col("polarity")
     room = np.where(pol > 0, np.minimum(bg, 255.0 - bg), bg)
-    return np.stack([
-        np.ones_like(snr), log(snr, 1.0, _SNR_CAP), log(m["ring_weber"], 0.01, 3.0),
-        log(peak / np.maximum(np.asarray(m["pixel_noise"], float), 0.5), 0.1, _CNR_CAP),
-        log(peak / np.maximum(np.asarray(m["ring_noise"], float), 0.5), 0.1, _CNR_CAP),
-        np.asarray(m["found_level"], float), log(m["core_area"], 1.0, 2000.0),
-        np.clip(np.asarray(m["fill"], float), 0.0, 2.0), log(m["radius"], 0.5, 30.0),
-        np.clip(np.asarray(m["level"], float), 0.0, 3.0),
-        log(peak / np.maximum(room, _MIN_BACKGROUND), 0.01, 3.0),
-        np.clip(np.asarray(m["paint"], float), 0.0, 2.0), pol, np.clip(bg, 0.0, 255.0) / 255.0,
-    ], axis=1)
+    G[0] = 1.0
+    G[1] = snr
+    G[2] = col("ring_weber")
+    G[3] = peak / np.maximum(col("pixel_noise"), 0.5)
+    G[4] = peak / np.maximum(col("ring_noise"), 0.5)
+    G[5] = col("found_level")
+    G[6] = col("core_area")
+    G[7] = col("fill")
+    G[8] = col("radius")
+    G[9] = col("level")
+    G[10] = peak / np.maximum(room, _MIN_BACKGROUND)
+    G[11] = col("paint")
+    G[12] = pol
+    G[13] = bg
+    np.clip(G, _GATE_BOUNDS[0][:, None], _GATE_BOUNDS[1][:, None], out=G)
+    G[_GATE_LOGS] = np.log(G[_GATE_LOGS])
+    G[13] /= 255.0
+    return np.ascontiguousarray(G.T)
+
+
+_GATE_BOUNDS = _bounds({
+    "log_snr": (1.0, _SNR_CAP), "log_ring_weber": (0.01, 3.0), "log_peak_pix": (0.1, _CNR_CAP),
+    "log_peak_ring": (0.1, _CNR_CAP), "log_area": (1.0, 2000.0), "fill": (0.0, 2.0), "log_radius": (0.5, 30.0),
+    "level": (0.0, 3.0), "peak_weber": (0.01, 3.0), "paint": (0.0, 2.0), "background": (0.0, 255.0)}, GATE_FEATURES)
+_GATE_LOGS = np.array([i for i, f in enumerate(GATE_FEATURES) if f.startswith("log_") or f == "peak_weber"])
 
 
 #: The gate features known before the flood (step 1 of the level search: ring background and
@@ -230,11 +272,9 @@ def pre_gate_probability(gf: np.ndarray, model: dict | None = None) -> np.ndarra
     """The pre-gate's output ``(N,)`` on gate features ``gf (N, len(GATE_FEATURES))`` (only
     the :data:`PRE_GATE_COLUMNS` are read; a network stored as ``gate_pre_*`` arrays), or None
     when the model has no pre-gate."""
-    model = load_model() if model is None else model
-    if "gate_pre_W1" not in model:
+    sub = _default_part("gate_pre_") if model is None else _part(model, "gate_pre_")
+    if sub is None:
         return None
-    sub = {k[9:]: model[k] for k in ("gate_pre_mean", "gate_pre_std", "gate_pre_W1", "gate_pre_b1", "gate_pre_w2",
-                                     "gate_pre_b2")}
     g = np.asarray(gf, float)[:, PRE_GATE_COLUMNS]
     return network_probability(g, sub)
 
@@ -249,11 +289,24 @@ def pre_gate_threshold(model: dict | None = None) -> float:
 def gate_probability(gf: np.ndarray, model: dict | None = None) -> np.ndarray | None:
     """The gate's output ``(N,)`` on gate features ``gf`` (a one-hidden-layer network like the
     classifier, stored as ``gate_*`` arrays), or None when the model has no gate."""
-    model = load_model() if model is None else model
-    if "gate_W1" not in model:
+    sub = _default_part("gate_") if model is None else _part(model, "gate_")
+    if sub is None:
         return None
-    sub = {k[5:]: model[k] for k in ("gate_mean", "gate_std", "gate_W1", "gate_b1", "gate_w2", "gate_b2")}
     return network_probability(gf, sub)
+
+
+def _part(model: dict, prefix: str) -> dict | None:
+    """The network stored in ``model`` as ``prefix`` + ``mean``, ``std``, ``W1``, ``b1``, ``w2``,
+    ``b2`` (None if absent)."""
+    if prefix + "W1" not in model:
+        return None
+    return {k: model[prefix + k] for k in ("mean", "std", "W1", "b1", "w2", "b2")}
+
+
+@lru_cache(maxsize=4)
+def _default_part(prefix: str) -> dict | None:
+    """:func:`_part` of the default classifier (kept: the gates run a few times per batch)."""
+    return _part(load_model(), prefix)
 
 
 def gate_threshold(model: dict | None = None) -> float:
@@ -290,8 +343,9 @@ def network_probability(feat: np.ndarray, model: dict) -> np.ndarray:
         h = np.tanh(x @ W1 + model["b1"])
         z = h @ model["w2"] + model["b2"]
     else:
-        h = np.tanh(np.einsum("nf,mfh->mnh", x, W1) + np.asarray(model["b1"])[:, None, :])
-        z = (np.einsum("mnh,mh->mn", h, np.asarray(model["w2"])) + np.asarray(model["b2"])[:, None]).mean(axis=0)
+        h = np.tanh(np.matmul(x, W1) + np.asarray(model["b1"])[:, None, :])           # (M, N, H)
+        z = (np.matmul(h, np.asarray(model["w2"])[:, :, None])[:, :, 0]
+             + np.asarray(model["b2"])[:, None]).mean(axis=0)
     return _logistic(np.clip(z, -60.0, 60.0))
 
 

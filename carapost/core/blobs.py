@@ -43,8 +43,9 @@ from .blob_candidates import (
     ring_test,
     signed_image,
 )
-from .blob_fit import LEVELS, LevelSearch, PatchFit, patch_half_size, search_levels
-from .blob_outline import fit_outline_parts
+from .blob_fit import LEVELS, LevelSearch, patch_half_size, search_levels
+from .blob_kernels_outline import OUTPUT_FIELDS
+from .blob_outline import outline_tables
 from .blob_patches import Patches, extract_patches
 from .blob_select import unique_detections
 
@@ -380,11 +381,20 @@ def _finer(out: dict[str, np.ndarray], ok: np.ndarray, sel: np.ndarray, level: n
 def _reference_level(image: np.ndarray) -> float:
     """95th percentile of the informative pixels (neither black nor clipped) of every fourth
     row and column: the grey level of brightly lit skin or card."""
-    sub = image[::4, ::4]
-    info = sub[(sub > 4) & (sub < 251)]
-    if info.size < 64:
+    hist = np.bincount(image[::4, ::4].ravel(), minlength=256)[5:251]
+    n = int(hist.sum())
+    if n < 64:
         return 255.0
-    return max(float(np.percentile(info, 95)), 8.0)
+    # numpy's linear percentile (np.percentile(info, 95)) of the sorted values, from their
+    # histogram: the order statistics around (n - 1) 0.95 and numpy's interpolation.
+    vi = (n - 1) * 0.95
+    lo = int(np.floor(vi))
+    g = vi - lo
+    cum = np.cumsum(hist)
+    a = float(np.searchsorted(cum, lo + 1) + 5)
+    b = float(np.searchsorted(cum, min(lo + 2, n)) + 5)
+    v = b - (b - a) * (1.0 - g) if g >= 0.5 else a + (b - a) * g
+    return max(v, 8.0)
 
 
 def _representatives(ctx: _Context, cand: Candidates, c75: np.ndarray
@@ -447,7 +457,7 @@ def _representatives(ctx: _Context, cand: Candidates, c75: np.ndarray
             loser, winner = np.where(win_i, j, i), np.where(win_i, i, j)
             # On one plateau (tops equal within the noise) the better scale estimate (higher
             # ring contrast) gives the radius.
-            tol = np.array([4.0 * ctx.level_noise(int(k)) / 3.0 + 2.0 for k in ref[rep[winner]]])
+            tol = 4.0 * ctx.noise_of(ref[rep[winner]]) / 3.0 + 2.0
             same = (top[rep[winner]] - top[rep[loser]] <= tol) & (c75[rep[loser]] > c75[rep[winner]])
             radius[rep[winner[same]]] = cand.radius[rep[loser[same]]]
             keep = np.ones(len(rep), bool)
@@ -496,12 +506,11 @@ def _fit(ctx: _Context, sel: np.ndarray, px: np.ndarray, py: np.ndarray, level: 
             go = live[pg >= ctx.gate]
             ctx.gated[idx[live]] = pg < ctx.gate
         searches.append((st, loc, k, noise, go))
-    fits = fit_outline_parts([(st, go, np.zeros(len(go))) for st, _, _, _, go in searches], polarity=ctx.polarity)
-    for (st, loc, k, noise, go), fit_go in zip(searches, fits):
+    tables = outline_tables([(st, go, np.zeros(len(go))) for st, _, _, _, go in searches], polarity=ctx.polarity)
+    for (st, loc, k, noise, go), (keep, tab, ok_go, _) in zip(searches, tables):
         idx = sel[loc]
-        fit = PatchFit.empty(len(loc))
-        for name in PatchFit.__dataclass_fields__:
-            getattr(fit, name)[go] = getattr(fit_go, name)
+        fit = _Table(len(loc))
+        fit.put(go[keep], tab, ok_go)
         fit.border[st.alive] = ~st.has
         _store(out, ok, idx, fit, px[loc], py[loc], k, noise, ctx.polarity)
         ctx.state[idx] = len(ctx.searches)
@@ -545,10 +554,36 @@ def _gate_features(ctx: _Context, idx: np.ndarray, k: np.ndarray, noise: np.ndar
     return blob_score.gate_features(ctx.snr[idx], m)
 
 
-def _store(out: dict[str, np.ndarray], ok: np.ndarray, idx: np.ndarray, fit, px: np.ndarray, py: np.ndarray,
-           k: np.ndarray, noise: np.ndarray, polarity: int) -> None:
-    """Write a :class:`~carapost.core.blob_fit.PatchFit` (centres relative to patch centres
-    ``px, py`` of levels ``k``) into rows ``idx`` of ``out``/``ok`` in full-resolution px."""
+class _Table:
+    """The outline kernel's outputs for ``n`` patches (zero where not fitted): ``cols``
+    float64 (len(OUTPUT_FIELDS), n) in the order of
+    :data:`~carapost.core.blob_kernels_outline.OUTPUT_FIELDS`, ``ok`` and ``border`` bool (n,)."""
+
+    def __init__(self, n: int):
+        self.cols = np.zeros((len(OUTPUT_FIELDS), n))
+        self.ok = np.zeros(n, bool)
+        self.border = np.zeros(n, bool)
+
+    def put(self, rows: np.ndarray, tab: np.ndarray, ok: np.ndarray) -> None:
+        """Rows ``rows`` from a kernel table ``tab (M, F)`` and its ``ok (M,)``."""
+        self.cols[:, rows] = tab.T
+        self.ok[rows] = ok
+
+    def __getattr__(self, name: str) -> np.ndarray:
+        return self.cols[_COLUMN[name]]
+
+
+_COLUMN = {name: i for i, name in enumerate(OUTPUT_FIELDS)}
+#: Outline outputs stored as they are (``_store``), and their columns.
+_PLAIN = ("rise", "noise", "ring_noise", "core_level", "found_level", "area_ratio", "asymmetry", "profile_rms",
+          "open", "kept", "saturated")
+_PLAIN_COLUMNS = np.array([_COLUMN[name] for name in _PLAIN])
+
+
+def _store(out: dict[str, np.ndarray], ok: np.ndarray, idx: np.ndarray, fit: "_Table", px: np.ndarray,
+           py: np.ndarray, k: np.ndarray, noise: np.ndarray, polarity: int) -> None:
+    """Write the outlines ``fit`` (centres relative to patch centres ``px, py`` of levels
+    ``k``) into rows ``idx`` of ``out``/``ok`` in full-resolution px."""
     s = 2.0 ** k
     out["x"][idx] = (px + fit.x) * s
     out["y"][idx] = (py + fit.y) * s
@@ -558,9 +593,8 @@ def _store(out: dict[str, np.ndarray], ok: np.ndarray, idx: np.ndarray, fit, px:
     out["contrast"][idx] = fit.contrast
     # Background level in the original image's grey levels (the level image is signed).
     out["background"][idx] = fit.background if polarity > 0 else 255.0 - fit.background
-    for name in ("rise", "noise", "ring_noise", "core_level", "found_level", "area_ratio", "asymmetry", "profile_rms",
-                 "open", "kept", "saturated"):
-        out[name][idx] = getattr(fit, name)
+    for name, col in zip(_PLAIN, fit.cols[_PLAIN_COLUMNS]):
+        out[name][idx] = col
     out["shape"][idx] = fit.shape_residual
     out["area"][idx] = fit.area * s * s
     out["pixel_noise"][idx] = noise
@@ -580,7 +614,10 @@ def _fit_alternatives(ctx: _Context, cands: np.ndarray, min_core: np.ndarray, ou
         m = np.flatnonzero(st_id == sid)
         parts.append((ctx.searches[int(sid)], ctx.row[cands[m]], min_core[m]))
         order.append(m)
-    for m, fit in zip(order, fit_outline_parts(parts, polarity=ctx.polarity)):
+    for m, (keep, tab, ok_m, border) in zip(order, outline_tables(parts, polarity=ctx.polarity)):
+        fit = _Table(len(m))
+        fit.put(keep, tab, ok_m)
+        fit.border[keep] = border
         c = cands[m]
         k = ctx.level[c]
         _store(out, ok, m, fit, ctx.px[c], ctx.py[c], k, ctx.noise_of(k), ctx.polarity)
@@ -606,7 +643,8 @@ def _score(cand, out: dict[str, np.ndarray], ok: np.ndarray, min_radius: float, 
     ok = ok & (out["major"] >= min_radius) & (out["major"] <= max_radius)
     ok &= (out["x"] >= -0.5) & (out["x"] <= W - 0.5) & (out["y"] >= -0.5) & (out["y"] <= H - 0.5)
     feat = blob_score.features(cand.snr, {**out, "polarity": np.full(len(cand), polarity)})
-    score = np.where(ok, blob_score.probability(feat), 0.0)
+    score = np.zeros(len(ok))
+    score[ok] = blob_score.probability(feat[ok])
     return score, ok, feat
 
 

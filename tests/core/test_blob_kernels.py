@@ -227,3 +227,37 @@ def test_patch_and_climb_kernels_equal_numpy():
     b = climb(img, cx, cy, compiled=False)
     assert all(np.array_equal(u, v) for u, v in zip(a, b))
     assert (a[0] != cx).mean() > 0.5
+
+
+def test_outline_disc_dilations_as_bits_equal_stamped_and_opencv():
+    """The outline kernel's dilations of the core by the discs of radius 2-4, as bit masks of
+    the band box's columns (``_grow_bits``), equal the stamped smallest radius
+    (``_grow_stamped``, used for boxes wider than 64 columns) and OpenCV's dilation by each
+    disc, on random cores (holes, several pieces, at the patch border)."""
+    import carapost.core.blob_kernels_outline as KO
+
+    rng = np.random.default_rng(5)
+    s = 37
+    for t in range(40):
+        core = np.zeros((s, s), bool)
+        cy, cx = rng.integers(0, s, 2) if t % 4 == 0 else rng.integers(8, s - 8, 2)
+        r = rng.uniform(1.0, 7.0)
+        yy, xx = np.mgrid[:s, :s]
+        core |= (yy - cy) ** 2 / r ** 2 + (xx - cx) ** 2 / (r * rng.uniform(0.5, 1.5)) ** 2 <= 1.0
+        core &= rng.random((s, s)) > 0.1 * (t % 3)
+        core[cy, cx] = True
+        ys, xs = np.nonzero(core)
+        cy0, cy1, cx0, cx1 = ys.min(), ys.max() + 1, xs.min(), xs.max() + 1
+        y0, y1, x0, x1 = max(cy0 - 5, 0), min(cy1 + 5, s), max(cx0 - 5, 0), min(cx1 + 5, s)
+        by0, by1, bx0, bx1 = max(cy0 - 4, 0), min(cy1 + 4, s), max(cx0 - 4, 0), min(cx1 + 4, s)
+        rowbits, dilbits = np.zeros((s, 5), np.uint64), np.zeros((s, 3), np.uint64)
+        KO._grow_bits(core, rowbits, dilbits, cy0, cy1, cx0, cx1, by0, by1, bx0)
+        grow = np.zeros((s, s), np.int64)
+        KO._grow_stamped(core, KO._DISC_R, grow, cy0, cy1, cx0, cx1, y0, y1, x0, x1)
+        cols = np.arange(bx0, bx1)
+        for k, radius in enumerate((2, 3, 4)):
+            bits = np.array([[(int(dilbits[i, k]) >> int(j - bx0)) & 1 for j in cols] for i in range(by0, by1)], bool)
+            disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+            ref = cv2.dilate(core.astype(np.uint8), disc, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
+            assert np.array_equal(bits, ref[by0:by1, bx0:bx1]), (t, radius)
+            assert np.array_equal(bits, grow[by0:by1, bx0:bx1] <= radius), (t, radius)

@@ -584,3 +584,97 @@ def test_gate_drops_only_improbable_candidates():
     lo = detect_blobs(fr.image, params(black_threshold=0.05, find_white_blobs=False))
     full = analyse_blobs(fr.image, BLACK, min_radius=1.5, max_radius=12, gate=False).table(0.05)
     assert len(lo["x"]) == len(full["x"])
+
+
+def _features_ref(snr: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
+    """Per-feature reference (the columns one by one)."""
+    from carapost.core import blob_score as S
+
+    def log(x: np.ndarray, lo: float, hi: float) -> np.ndarray:
+        return np.log(np.clip(np.asarray(x, float), lo, hi))
+
+    snr = np.asarray(snr, float)
+    contrast = np.asarray(m["contrast"], float)
+    pix = np.maximum(np.asarray(m["pixel_noise"], float), 0.5)
+    ls = log(snr, 1.0, S._SNR_CAP)
+    lp = log(contrast / pix, 1.0, S._CNR_CAP)
+    lc = log(contrast / np.maximum(np.asarray(m["noise"], float), 0.5), 1.0, S._CNR_CAP)
+    bg = np.asarray(m["background"], float)
+    # A white dot cannot rise above 255: its room is the smaller of the background level
+    # (paint multiplies the light) and the headroom to saturation.
+    bg = np.where(np.asarray(m["polarity"]) > 0, np.minimum(bg, 255.0 - bg), bg)
+    lw = log(contrast / np.maximum(bg, S._MIN_BACKGROUND), 0.02, 3.0)
+    rise = np.clip(np.asarray(m["rise"], float), -1.0, 4.0)
+    core = np.asarray(m["core_level"], float)
+    shape = np.clip(np.asarray(m["shape"], float), 0.0, 1.0)
+    asym = np.clip(np.asarray(m["asymmetry"], float), 0.0, 1.0)
+    expected = pix ** 2 + (S.PROFILE_MODEL_ERROR * contrast) ** 2
+    chi = log(np.asarray(m["profile_rms"], float) ** 2 / expected, 0.1, 1e3)
+    aspect = np.asarray(m["minor"], float) / np.maximum(np.asarray(m["major"], float), 1e-6)
+    op = np.clip(np.asarray(m["open"], float), 0.0, 1.0)
+    kept = np.clip(np.asarray(m["kept"], float), 0.0, 1.0)
+    ar = np.clip(np.asarray(m["area_ratio"], float), 0.0, 1.0)
+    paint = np.clip(np.asarray(m["paint"], float), 0.0, 2.0)
+    sat = np.clip(np.asarray(m["saturated"], float), 0.0, 1.0)
+    major = np.asarray(m["major"], float)
+    lmaj = log(major, 1.0, 30.0)
+    lring = log(contrast / np.maximum(np.asarray(m["ring_noise"], float), 0.5), 1.0, S._CNR_CAP)
+    lrw = log(np.asarray(m["ring_weber"], float), 0.01, 3.0)
+    level = np.clip(np.asarray(m["level"], float), 0.0, 3.0)
+    pol = np.asarray(m["polarity"], float)
+    bgl = np.clip(np.asarray(m["background"], float), 0.0, 255.0) / 255.0
+    return np.stack([
+        np.ones_like(snr), ls, lp, lc, lw, rise, core, shape, asym, chi, aspect,
+        lp * lp, lw * lw, asym * lp, chi * lp, shape * lp, op, kept, ar, op * op, op * lw,
+        paint, paint * paint, sat, lmaj, lring, lrw, level, pol, bgl,
+        np.clip(np.asarray(m["ctx_max"], float), -1.0, 2.0), np.clip(np.asarray(m["ctx_mean"], float), -1.0, 2.0),
+        np.clip(np.asarray(m["ctx_line"], float), -1.0, 2.0), np.clip(np.asarray(m["ctx_inner"], float), -1.0, 2.0),
+        np.clip(np.asarray(m["core_level"], float) - np.asarray(m["found_level"], float), 0.0, 1.0),
+    ], axis=1)
+
+
+def _gate_features_ref(snr: np.ndarray, m: dict[str, np.ndarray]) -> np.ndarray:
+    """Per-feature reference (the columns one by one)."""
+    from carapost.core import blob_score as S
+
+    def log(x, lo, hi):
+        return np.log(np.clip(np.asarray(x, float), lo, hi))
+
+    snr = np.asarray(snr, float)
+    peak = np.asarray(m["peak"], float)
+    bg = np.asarray(m["background"], float)
+    pol = np.asarray(m["polarity"], float)
+    room = np.where(pol > 0, np.minimum(bg, 255.0 - bg), bg)
+    return np.stack([
+        np.ones_like(snr), log(snr, 1.0, S._SNR_CAP), log(m["ring_weber"], 0.01, 3.0),
+        log(peak / np.maximum(np.asarray(m["pixel_noise"], float), 0.5), 0.1, S._CNR_CAP),
+        log(peak / np.maximum(np.asarray(m["ring_noise"], float), 0.5), 0.1, S._CNR_CAP),
+        np.asarray(m["found_level"], float), log(m["core_area"], 1.0, 2000.0),
+        np.clip(np.asarray(m["fill"], float), 0.0, 2.0), log(m["radius"], 0.5, 30.0),
+        np.clip(np.asarray(m["level"], float), 0.0, 3.0),
+        log(peak / np.maximum(room, S._MIN_BACKGROUND), 0.01, 3.0),
+        np.clip(np.asarray(m["paint"], float), 0.0, 2.0), pol, np.clip(bg, 0.0, 255.0) / 255.0,
+    ], axis=1)
+
+
+def test_feature_matrices_equal_the_per_feature_reference():
+    """The classifier's and the gate's feature matrices (assembled in one block with one clip
+    and one log) equal the features computed one by one, bit for bit, on random values
+    spanning every clip bound (with NaN and inf)."""
+    import carapost.core.blob_score as S
+
+    rng = np.random.default_rng(0)
+    names = ["contrast", "background", "noise", "pixel_noise", "rise", "core_level", "shape", "asymmetry",
+             "profile_rms", "open", "kept", "area_ratio", "paint", "saturated", "major", "minor", "ring_noise",
+             "ring_weber", "level", "ctx_max", "ctx_mean", "ctx_line", "ctx_inner", "found_level", "peak",
+             "core_area", "fill", "radius"]
+    for n in (0, 1, 7, 500):
+        m = {k: rng.normal(0, 50, n) * rng.choice([0.001, 0.1, 1, 10], n) for k in names}
+        m["polarity"] = rng.choice([-1, 1], n)
+        if n > 5:
+            m["contrast"][3], m["major"][4] = np.nan, np.inf
+        snr = rng.gamma(2, 10, n)
+        for new, ref in ((S.features, _features_ref), (S.gate_features, _gate_features_ref)):
+            a, b = new(snr, m), ref(snr, m)
+            assert a.shape == b.shape and a.flags.c_contiguous
+            assert np.array_equal(a, b, equal_nan=True)
