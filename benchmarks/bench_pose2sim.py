@@ -63,11 +63,33 @@ With ``--static``, the calibration is checked against the static scene (``static
   distances, the sync scan again and frame 0's automatic initialization with the refined
   poses.
 
+With ``--tracks``, the poses are refined from the person's marker *tracks*, wand-style
+(``tracks``, :mod:`carapost.core.track_calibration`; white blobs of all 100 frames linked into
+2D tracks per camera, :data:`pose2sim_case.P2S_TRACKS`):
+
+* ``moving_tracks``: tracks per camera that move (the others are clutter);
+* ``track_pairs``: per camera pair, the track pairs whose epipolar distance under the file's
+  poses is bounded and consistent over time (30 px, spread 3 px, sweep 3 x spread), and the
+  same with camera b's tracks shifted by 20, -20, 30, -30 frames (null control: no true pair
+  left);
+* ``sync``: per accepted track pair, the time offset of camera b (-6..6 frames) that minimises
+  the pair's spread: a time offset between the videos would move it away from 0;
+* ``refined``: :func:`~carapost.core.track_calibration.refine_extrinsics` from the file's poses
+  (cam01 fixed; cam01 and cam02 fixed), validated on what the fit did not use: the six static
+  landmarks (median reprojection, file poses 9.5 px), the cameras turned / moved, and frame
+  0's automatic initialization with the refined poses (points, on the person, median
+  reprojection, its own null control); ``null_refined``: the same with one camera's tracks
+  shifted by 20 frames;
+* ``against_landmark_poses``: the accepted tracks' reprojection errors per camera with the
+  file's poses and with the poses refined on the six landmarks alone (cam01, cam02 fixed;
+  independent of the tracks), and a track bundle started from the landmark poses (the
+  landmarks' error before and after: the tracks' conditioning).
+
 CPU times are process times. Prints one JSON line.
 
-    .venv/bin/python benchmarks/bench_pose2sim.py [--pooled] [--static] [--static-only]
+    .venv/bin/python benchmarks/bench_pose2sim.py [--pooled] [--static] [--tracks] [--static-only]
 
-(``--static-only``: only the ``static_scene`` section, not the detector settings.)
+(``--static-only``: only the ``static_scene`` / ``tracks`` sections, not the detector settings.)
 """
 
 from __future__ import annotations
@@ -85,15 +107,17 @@ sys.path.insert(0, str(ROOT))
 
 from _common import emit  # noqa: E402
 from conftest import real_data_dir  # noqa: E402
-from pose2sim_case import (CAM03_MARKERS_FRAME0, CAM04_SPINE_FRAME0, LETTERBOXED, P2S_INIT,  # noqa: E402
+from pose2sim_case import (CAM03_MARKERS_FRAME0, CAM04_SPINE_FRAME0, LETTERBOXED, P2S_INIT, P2S_TRACKS,  # noqa: E402
                            STATIC_BOLTS, STATIC_LANDMARKS, auto_kwargs, detect, near_person, on_body,
                            skeleton_points, video_to_calibration)
 
 from carapost.core.auto_init import auto_initialize  # noqa: E402
 from carapost.core.bundle import bundle_adjust  # noqa: E402
 from carapost.core.camera import camera_centre, project, symmetric_epipolar_distance  # noqa: E402
-from carapost.core.scene_refine import refine_poses  # noqa: E402
+from carapost.core.scene_refine import pose_change, refine_poses  # noqa: E402
 from carapost.core.sync_offset import epipolar_offset_scores  # noqa: E402
+from carapost.core.track_calibration import (bundle_poses, link_tracks, match_tracks, moving_tracks,  # noqa: E402
+                                             refine_extrinsics, track_pair_table, trajectory_observations)
 from carapost.core.triangulate import triangulate  # noqa: E402
 from carapost.core.epipolar_match import (detection_arrays, gather_xy, pair_candidates,  # noqa: E402
                                           triangulate_points)
@@ -206,7 +230,7 @@ def _auto_summary(dets: list, intr: list, R: np.ndarray, t: np.ndarray, skel: np
             "null_points": _null_points(dets, intr, R, t, min_views)}
 
 
-def run(root: Path, pooled: bool = False, static: bool = False, settings: bool = True) -> dict:
+def run(root: Path, pooled: bool = False, static: bool = False, settings: bool = True, tracks: bool = False) -> dict:
     cal = load_calibration(root / "calibration" / "Calib.qca.txt")
     R, t = cal.poses(1)
     R, t = R[0], t[0]
@@ -246,6 +270,8 @@ def run(root: Path, pooled: bool = False, static: bool = False, settings: bool =
         out["pooled"] = _pooled(root, cal, intr, R, t, skel)
     if static:
         out["static_scene"] = _static_scene(root, cal, intr, R, t, skel)
+    if tracks:
+        out["tracks"] = _tracks(root, cal, intr, R, t, skel)
     return out
 
 
@@ -466,6 +492,135 @@ def _refined(near: list, dets0: list, intr: list, R: np.ndarray, t: np.ndarray, 
                                                   "null_points")}}
 
 
+#: Time shifts of camera b's tracks in the track-pair null control, frames.
+TRACK_SHIFTS = (20, -20, 30, -30)
+#: Offsets scanned per accepted track pair (``sync``), frames.
+TRACK_SYNC_OFFSETS = tuple(range(-6, 7))
+#: Prior of the track bundle: a camera turned by this much, or moved by this much, costs as
+#: much as a 1 px residual.
+TRACK_PRIOR = dict(rotation_sigma_deg=0.5, centre_sigma_mm=30.0)
+
+
+def _shift_tracks(T: np.ndarray, k: int) -> np.ndarray:
+    """Tracks ``(n, F, 2)`` moved ``k`` frames later (earlier for k < 0), NaN-filled."""
+    out = np.full_like(T, np.nan)
+    if k > 0:
+        out[:, k:] = T[:, :-k]
+    elif k < 0:
+        out[:, :k] = T[:, -k:]
+    else:
+        out = T.copy()
+    return out
+
+
+def _landmark_error(R: np.ndarray, t: np.ndarray, intr: list) -> float | None:
+    """Median reprojection error of :data:`pose2sim_case.STATIC_LANDMARKS` triangulated with the poses."""
+    X = triangulate(STATIC_LANDMARKS, intr, R, t).xyz
+    return _median(np.stack([np.linalg.norm(project(X, intr[c], R[c], t[c]) - STATIC_LANDMARKS[:, c], axis=1)
+                             for c in range(len(intr))]).ravel())
+
+
+def _track_residuals(tracks: list, label: list, intr: list, R: np.ndarray, t: np.ndarray) -> list:
+    """Median reprojection error per camera of the matched trajectories' points (triangulated
+    with the poses), px."""
+    O = trajectory_observations(tracks, label)
+    xy = O.reshape(-1, len(intr), 2)
+    xy = xy[np.isfinite(xy[..., 0]).sum(1) >= 2]
+    X = triangulate(xy, intr, R, t).xyz
+    return [_median(np.linalg.norm(project(X, intr[c], R[c], t[c]) - xy[:, c], axis=1)) for c in range(len(intr))]
+
+
+def _tracks(root: Path, cal, intr: list, R: np.ndarray, t: np.ndarray, skel: np.ndarray) -> dict:
+    """Extrinsics from marker tracks (see the module docstring, ``--tracks``)."""
+    sources = [open_source(root / "videos" / f"{n}.mp4") for n in cal.names]
+    t0 = time.process_time()
+    frames = []
+    for s in sources:
+        frames.append([])
+        for f in range(s.n_frames):
+            d = detect(s.read(f), "blobs")
+            frames[-1].append(np.c_[d["x"], d["y"]].astype(float))
+    out: dict = {"frames": len(frames[0]), "detect_cpu_s": round(time.process_time() - t0, 1)}
+    t0 = time.process_time()
+    linked = [link_tracks(fr, gate_px=P2S_TRACKS["gate_px"]) for fr in frames]
+    tracks = [T[moving_tracks(T, min_frames=P2S_TRACKS["min_frames"], min_motion_px=P2S_TRACKS["min_motion_px"])]
+              for T in linked]
+    out["link_cpu_s"] = round(time.process_time() - t0, 2)
+    out["tracks"] = [len(T) for T in linked]
+    out["moving_tracks"] = [len(T) for T in tracks]
+    C = len(intr)
+    crit = dict(min_common=P2S_TRACKS["min_common"])
+    pairs = {}
+    for a in range(C):
+        for b in range(a + 1, C):
+            row = []
+            for k in (0,) + TRACK_SHIFTS:
+                sh = [T if c != b else _shift_tracks(T, k) for c, T in enumerate(tracks)]
+                _, edges = match_tracks([sh[a], sh[b]], [intr[a], intr[b]], R[[a, b]], t[[a, b]], **crit)
+                row.append(len(edges))
+            pairs[f"{a + 1}-{b + 1}"] = {"real": row[0], "shifted": row[1:]}
+    out["track_pairs"] = pairs
+    label, edges = match_tracks(tracks, intr, R, t, **crit)
+    sync: dict = {}
+    for a, i, b, j, _ in edges:
+        spreads = [track_pair_table(tracks[a][i:i + 1], _shift_tracks(tracks[b][j:j + 1], k), intr[a], R[a], t[a],
+                                    intr[b], R[b], t[b]).spread[0, 0] for k in TRACK_SYNC_OFFSETS]
+        sync.setdefault(f"{a + 1}-{b + 1}", []).append(TRACK_SYNC_OFFSETS[int(np.nanargmin(spreads))])
+    out["sync_best_offsets"] = sync
+    dets0 = [detect(s.read(0), "blobs") for s in sources]
+    out["file_poses"] = {"static_landmarks_median_px": _landmark_error(R, t, intr),
+                         "frame0_auto": {k: v for k, v in _auto_summary(dets0, intr, R, t, skel, 3).items()
+                                         if k in ("points", "on_person", "median_reprojection_px", "null_points")}}
+    out["refined"] = {}
+    for name, fixed in (("cam01_fixed", 0), ("cam01_cam02_fixed", (0, 1))):
+        t0 = time.process_time()
+        r = refine_extrinsics(tracks, intr, R, t, fixed=fixed, **crit, **TRACK_PRIOR)
+        cpu = time.process_time() - t0
+        spine = symmetric_epipolar_distance(CAM03_MARKERS_FRAME0[:2], CAM04_SPINE_FRAME0, intr[2], r.R[2], r.t[2],
+                                            intr[3], r.R[3], r.t[3])
+        auto = _auto_summary(dets0, intr, r.R, r.t, skel, 3)
+        last = r.rounds[-1]
+        entry = {"cpu_s": round(cpu, 2), "track_pairs": last["pairs_per_camera_pair"],
+                 "trajectories": last["trajectories"], "observations": last["observations"],
+                 "median_residual_px": round(last["median_residual_px"], 2),
+                 "camera_turned_deg": [round(float(v), 2) for v in r.turned_deg],
+                 "camera_moved_mm": [round(float(v), 1) for v in r.moved_mm],
+                 "static_landmarks_median_px": _landmark_error(r.R, r.t, intr),
+                 "spine_cam03_cam04_epipolar_px": [round(float(v), 1) for v in spine],
+                 "frame0_auto": {k: auto[k] for k in ("points", "points_by_views", "on_person",
+                                                      "median_reprojection_px", "null_points")}}
+        nulls = {}
+        for c in range(1, C):
+            sh = [T if k != c else _shift_tracks(T, 20) for k, T in enumerate(tracks)]
+            try:
+                rn = refine_extrinsics(sh, intr, R, t, fixed=fixed, **crit, **TRACK_PRIOR)
+            except ValueError as e:
+                nulls[cal.names[c]] = str(e)
+                continue
+            own = sum(v for k, v in rn.rounds[-1]["pairs_per_camera_pair"].items() if str(c + 1) in k.split("-"))
+            nulls[cal.names[c]] = {"its_track_pairs": own,
+                                   "static_landmarks_median_px": _landmark_error(rn.R, rn.t, intr)}
+        entry["null_refined_shift_20"] = nulls
+        out["refined"][name] = entry
+    # the tracks against poses refined on the six landmarks alone (independent of the tracks)
+    rl = refine_poses(STATIC_LANDMARKS, intr, R, t, fixed=(0, 1))
+    label_l, edges_l = match_tracks(tracks, intr, rl.R, rl.t, max_bias_px=8.0, max_spread_px=2.0, **crit)
+    O = trajectory_observations(tracks, label_l)
+    xy = O.reshape(-1, C, 2)
+    xy = xy[np.isfinite(xy[..., 0]).sum(1) >= 2]
+    Rb, tb, _ = bundle_poses(xy, intr, rl.R, rl.t, fixed=(0, 1), **TRACK_PRIOR)
+    out["against_landmark_poses"] = {
+        "file_poses_track_median_px_per_camera": _track_residuals(tracks, label, intr, R, t),
+        "landmark_poses_track_median_px_per_camera": _track_residuals(tracks, label_l, intr, rl.R, rl.t),
+        "landmark_poses_static_median_px": _landmark_error(rl.R, rl.t, intr),
+        "bundled_from_landmark_poses": {
+            "track_median_px_per_camera": _track_residuals(tracks, label_l, intr, Rb, tb),
+            "static_landmarks_median_px": _landmark_error(Rb, tb, intr),
+            "camera_turned_deg": [round(float(v), 2) for v in pose_change(rl.R, rl.t, Rb, tb)[0]],
+            "camera_moved_mm": [round(float(v), 1) for v in pose_change(rl.R, rl.t, Rb, tb)[1]]}}
+    return out
+
+
 def main() -> None:
     base = real_data_dir()
     if base is None or not (base / "pose2sim-demo").is_dir():
@@ -473,7 +628,7 @@ def main() -> None:
         return
     args = sys.argv[1:]
     emit("pose2sim", **run(base / "pose2sim-demo", pooled="--pooled" in args, static="--static" in args,
-                           settings="--static-only" not in args))
+                           settings="--static-only" not in args, tracks="--tracks" in args))
 
 
 if __name__ == "__main__":

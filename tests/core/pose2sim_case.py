@@ -30,6 +30,11 @@ P2S_BLOBS = dict(find_black_blobs=False, find_white_blobs=True, white_min_radius
                  white_threshold=0.05, adaptive_background=True)
 #: :class:`~carapost.core.sphere_markers.SphereParameters` for the demo's markers (the defaults).
 P2S_SPHERES: dict = {}
+#: 2D track settings for :mod:`carapost.core.track_calibration` on the demo (white blobs of all
+#: 100 frames): :func:`link_tracks` gate, and :func:`moving_tracks` / ``min_common`` chosen so that
+#: a camera whose tracks are shifted by 20-30 frames keeps 0-2 track pairs per camera pair (the
+#: person balances: few markers move more than 8 px in the 1.7 s).
+P2S_TRACKS = dict(gate_px=6.0, min_frames=10, min_motion_px=8.0, min_common=10)
 #: The detectors :func:`detect` offers.
 DETECTORS = ("blobs", "spheres")
 #: Initialize 3D parameters (the defaults: no caddy growth happens here).
