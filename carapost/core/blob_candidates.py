@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .blob_kernels import climb_step, laplacian_histograms
+from .blob_kernels_dense import climb_step, laplacian_histograms, local_maxima
 
 __all__ = ["Candidates", "ResponseLevel", "RingTest", "signed_image", "pyramid", "detection_scales", "climb",
            "responses", "find_candidates", "ring_test", "pixel_noise", "informative", "OUTER_SIDE",
@@ -135,7 +135,7 @@ def pixel_noise(img: np.ndarray, compiled: bool = True) -> float:
     1.4826 x the median absolute 4-neighbour Laplacian over every third informative pixel
     (:func:`informative`), divided by ``sqrt(20)`` (the Laplacian's gain on white noise); at
     least the 8-bit quantisation noise. ``compiled``: the median from the histogram of the
-    (integer) Laplacian values (:func:`carapost.core.blob_kernels.laplacian_histograms`, the
+    (integer) Laplacian values (:func:`carapost.core.blob_kernels_dense.laplacian_histograms`, the
     same value), else by partitioning them.
     """
     if compiled:
@@ -299,11 +299,9 @@ def find_candidates(levels: list[ResponseLevel], *, min_snr: float, polarity: in
         for m, side, r, spread in zip(lv.per_scale, lv.sides, lv.radius, lv.spread):
             k = 3 if side <= 3 else 5
             # Pixels above the threshold, off the border, that are the maximum of their
-            # neighbourhood (the threshold first: few pixels pass it).
+            # neighbourhood (one compiled pass: the threshold first, few pixels pass it).
             mf = m.ravel()
-            pk = np.flatnonzero(m[1:-1, 1:-1] > min_snr)
-            pk = (pk // (w - 2) + 1) * w + pk % (w - 2) + 1
-            pk = pk[mf[pk] >= cv2.dilate(m, np.ones((k, k), np.uint8)).ravel()[pk]]
+            pk = local_maxima(m, k, min_snr)
             if len(pk) == 0:
                 continue
             val = mf[pk].astype(np.float64)
@@ -430,7 +428,7 @@ def climb(img: np.ndarray, x: np.ndarray, y: np.ndarray, steps: int = 16, compil
     """Move each point uphill on the 3x3 mean of ``img`` (one pixel per step, 8 neighbours)
     until it reaches a local maximum or ``steps`` steps are done. Returns the end points and
     the 3x3 mean there (pixels beyond the border repeat the border). ``compiled``: the loop of
-    :func:`carapost.core.blob_kernels.climb_step` (the same result), else vectorised numpy
+    :func:`carapost.core.blob_kernels_dense.climb_step` (the same result), else vectorised numpy
     over the points still moving."""
     x, y = np.array(x, np.int64), np.array(y, np.int64)
     if compiled:

@@ -3,7 +3,7 @@
 All candidates of one patch size (whatever pyramid level they come from) are processed
 together on a stack of square patches ``(N, S, S)`` (:func:`extract_patches`); nothing loops
 over candidates in Python: each step is one call of a compiled kernel that loops over the
-candidates and their pixels (:mod:`carapost.core.blob_kernels`, ``blob_kernels_outline``;
+candidates and their pixels (:mod:`carapost.core.blob_kernels`, ``blob_kernels_outline``, ``blob_kernels_region``;
 the numpy building blocks here — :func:`_plane_fit`, :func:`_flood`, :func:`_moments` — are
 those of the numpy reference of steps 3-6 and of the kernels' tests). Steps 1-2 are
 :func:`search_levels` (its :class:`LevelSearch` is kept), steps 3-5 :func:`fit_outlines` (in

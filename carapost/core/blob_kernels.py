@@ -1,14 +1,15 @@
 """Compiled (numba) kernels of the blob fit's level search (steps 1-2 of
-:mod:`carapost.core.blob_fit`) and of the candidate stage: one call per patch stack or image
-instead of dozens of numpy passes.
+:mod:`carapost.core.blob_fit`) and of its patch stacks: one call per patch stack instead of
+dozens of numpy passes.
 
 Each kernel loops over the candidates of a stack ``(N, S, S)`` (``S = 2 half + 1``) and over
 their pixels, and computes what the vectorised numpy steps it replaces computed (sums in
 float64, per-pixel arithmetic in the same float32 order): the ring plane and peak
 (:func:`ring_step`), the flood levels and the level search (:func:`level_step`), the patch
-stacks (:func:`patch_step`), the candidates' uphill climb (:func:`climb_step`) and the
-Laplacian histograms of the pixel noise (:func:`laplacian_histograms`). The plane fit and the
-3x3 mean are shared with the outline kernels (:mod:`carapost.core.blob_kernels_outline`).
+stacks (:func:`patch_step`); the candidate stage's kernels are in
+:mod:`carapost.core.blob_kernels_dense`. The plane fit and the
+3x3 mean are shared with the outline kernels (:mod:`carapost.core.blob_kernels_outline`,
+:mod:`carapost.core.blob_kernels_region`).
 
 The public functions are thin Python wrappers that allocate the outputs and work arrays (an
 allocation inside a kernel costs compile time) and call the compiled ``_name``; small
@@ -22,8 +23,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-__all__ = ["plane_fit", "box3", "mean3", "ring_step", "level_step", "climb_step", "patch_step", "laplacian_histograms",
-           "LEVEL_THRESHOLDS", "LEVELS", "FP", "FLAT_LO", "FLAT_HI"]
+__all__ = ["plane_fit", "box3", "mean3", "ring_step", "level_step", "patch_step", "LEVEL_THRESHOLDS", "LEVELS", "FP", "FLAT_LO", "FLAT_HI"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 #: Small helpers are inlined into their callers (compiling them apart costs more time).
@@ -76,24 +76,29 @@ def solve3(a00, a01, a02, a11, a12, a22, r0, r1, r2):
 
 
 @nb.njit(**_JIT)
-def plane_fit(p, w, half, iters, y0, y1, x0, x1, resid):
+def plane_fit(p, w, half, iters, y0, y1, x0, x1, resid, uy0, uy1, ux0, ux1):
     """Robust plane of one patch ``p (S, S)`` (uint8 or float32) over the pixels ``w`` (uint8
     (S, S), 1 = used; changed in place by the reweighting), as
     :func:`carapost.core.blob_fit._plane_fit`: ``iters`` passes dropping pixels beyond 2.5
-    sigma. Only rows ``y0:y1`` and columns ``x0:x1`` are read (``w`` is 0 elsewhere), and
-    ``resid (S, S)`` float32 receives ``p - plane`` there. Returns ``(sigma, n_used, c0, c1,
-    c2)`` (sigma corrected for the clipping as there; ``c`` float32 values)."""
+    sigma. Only rows ``y0:y1`` and columns ``x0:x1`` are read (``w`` is 0 elsewhere; its
+    non-zero pixels are within rows ``uy0:uy1`` and columns ``ux0:ux1``, the box the passes
+    before the last visit), and ``resid (S, S)`` float32 receives ``p - plane`` there. Returns
+    ``(sigma, n_used, c0, c1, c2)`` (sigma corrected for the clipping as there; ``c`` float32
+    values)."""
     sigma = 0.0
     s0 = 0.0
     c0 = np.float32(0.0)
     c1 = np.float32(0.0)
     c2 = np.float32(0.0)
+    lim = np.float32(np.inf)
     for it in range(iters + 1):
         m0 = m1 = m2 = m3 = m4 = m5 = 0.0
         r0 = r1 = r2 = 0.0
-        for i in range(y0, y1):
+        for i in range(uy0, uy1):
             y = float(i - half)
-            for j in range(x0, x1):
+            for j in range(ux0, ux1):
+                if w[i, j] and it > 0 and not (abs(resid[i, j]) < lim):
+                    w[i, j] = 0                # the previous pass's reweighting
                 if w[i, j]:
                     x = float(j - half)
                     v = float(p[i, j])
@@ -116,9 +121,10 @@ def plane_fit(p, w, half, iters, y0, y1, x0, x1, resid):
         c2 = np.float32(e2)
         e2s = 0.0
         last = it == iters
-        for i in range(y0, y1):
+        by0, by1, bx0, bx1 = (y0, y1, x0, x1) if last else (uy0, uy1, ux0, ux1)
+        for i in range(by0, by1):
             yf = np.float32(i - half)
-            for j in range(x0, x1):
+            for j in range(bx0, bx1):
                 if last or w[i, j]:        # before the last pass only the used pixels
                     xf = np.float32(j - half)
                     r = np.float32(p[i, j]) - (c0 + c1 * xf + c2 * yf)
@@ -126,12 +132,7 @@ def plane_fit(p, w, half, iters, y0, y1, x0, x1, resid):
                     if w[i, j]:
                         e2s += float(r) * float(r)
         sigma = np.sqrt(e2s / max(s0 - 3.0, 1.0))
-        if it < iters:
-            lim = np.float32(2.5 * max(sigma, 0.3))
-            for i in range(y0, y1):
-                for j in range(x0, x1):
-                    if w[i, j] and not (abs(resid[i, j]) < lim):
-                        w[i, j] = 0
+        lim = np.float32(2.5 * max(sigma, 0.3))
     scale = 0.94 if iters > 0 else 1.0
     return sigma / scale, s0, c0, c1, c2
 
@@ -218,7 +219,7 @@ def _ring_step(pu, bad, sat, radius, half, d0, ds, sig0, n0, c0, pk, peak, w, rs
                     v = pu[k, i, j]
                     if v <= FLAT_LO or v >= FLAT_HI:
                         w[i, j] = 0
-        sg, su, a, b, c = plane_fit(pu[k], w, half, 1, 0, s, 0, s, d0[k])
+        sg, su, a, b, c = plane_fit(pu[k], w, half, 1, 0, s, 0, s, d0[k], 0, s, 0, s)
         sig0[k] = sg
         n0[k] = su
         c0[k, 0] = a
@@ -373,48 +374,6 @@ def _level_step(ds, peak, pk, half, max_radius, pixel_noise, lvl, L, area, fill,
     return lvl, L, area, fill, edge_max, valid, k_found, has
 
 
-def climb_step(img: np.ndarray, x: np.ndarray, y: np.ndarray, steps: int) -> np.ndarray:
-    """:func:`_climb_step` (see there)."""
-    top = np.zeros(len(x))
-    _climb_step(img, x, y, int(steps), top, np.zeros(9, np.int64))
-    return top
-
-
-@nb.njit(**_JIT)
-def _climb_step(img, x, y, steps, top, box):
-    """:func:`carapost.core.blob_candidates.climb` compiled: each point ``(x, y)`` (int64 (N,),
-    changed in place) moves uphill on the 3x3 mean of ``img`` (uint8 (H, W); pixels beyond the
-    border repeat it) to the neighbour with the largest mean (staying put on ties, else the
-    first in row-major order) until none is higher or ``steps`` steps are done. The 3x3 mean
-    at the end points (float32 values) goes to ``top`` (float64 (N,)); ``box`` is work space."""
-    H, W = img.shape
-    n = x.shape[0]
-    for k in range(n):
-        cx, cy = x[k], y[k]
-        for _ in range(steps):
-            for a in range(3):
-                for b in range(3):
-                    acc = 0
-                    for u in range(3):
-                        yy = min(max(cy + a - 1 + u - 1, 0), H - 1)
-                        for v in range(3):
-                            xx = min(max(cx + b - 1 + v - 1, 0), W - 1)
-                            acc += img[yy, xx]
-                    box[a * 3 + b] = acc
-            top[k] = np.float32(box[4]) / np.float32(9.0)
-            best = 2 * box[4] + 1          # the centre wins ties
-            arg = 4
-            for m in range(9):
-                if m != 4 and 2 * box[m] > best:
-                    best = 2 * box[m]
-                    arg = m
-            if arg == 4:
-                break
-            cx = min(max(cx + arg % 3 - 1, 0), W - 1)
-            cy = min(max(cy + arg // 3 - 1, 0), H - 1)
-        x[k], y[k] = cx, cy
-
-
 def patch_step(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, half: int, mask: np.ndarray, sat_lo: int,
                sat_hi: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_patch_step` (see there): returns ``pu``, ``bad``, ``sat``."""
@@ -450,26 +409,3 @@ def _patch_step(img, cx, cy, half, mask, sat_lo, sat_hi, pu, bad, sat):
                     b = True
                 bad[k, i, j] = b
                 sat[k, i, j] = (not out) and v >= sat_lo and v <= sat_hi
-
-
-def laplacian_histograms(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_laplacian_histograms` (see there): returns ``(keep, every)``."""
-    keep, every = np.zeros(1021, np.int64), np.zeros(1021, np.int64)
-    _laplacian_histograms(img, keep, every)
-    return keep, every
-
-
-@nb.njit(**_JIT)
-def _laplacian_histograms(img, keep, every):
-    """Histograms (int64 (1021,)) of the absolute 4-neighbour Laplacian of ``img`` (uint8
-    (H, W)) on every third pixel from ``(1, 1)`` (the samples of
-    :func:`carapost.core.blob_candidates.pixel_noise`), added to ``keep`` over the informative
-    centres (neither black nor clipped) and to ``every`` over all of them."""
-    H, W = img.shape
-    for i in range(1, H - 1, 3):
-        for j in range(1, W - 1, 3):
-            c = int(img[i, j])
-            v = abs(4 * c - int(img[i - 1, j]) - int(img[i + 1, j]) - int(img[i, j - 1]) - int(img[i, j + 1]))
-            every[v] += 1
-            if FLAT_LO < c < FLAT_HI:
-                keep[v] += 1

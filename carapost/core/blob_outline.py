@@ -18,8 +18,8 @@ import numpy as np
 
 from . import blob_fit
 from .blob_fit import LEVELS, LevelSearch, PatchFit, _moments, _plane_fit, _prefer_informative, _thresholds
-from .blob_kernels_outline import (_BAND, _MAX_SATURATED_RIM, _MAX_SECTOR_LEVEL, _N_SECTORS, _RAMP, _TRIM_ITERS,
-                                   _TRIM_MARGIN, OUTPUT_FIELDS, outline_step)
+from .blob_kernels_outline import _RAMP, _TRIM_ITERS, _TRIM_MARGIN, OUTPUT_FIELDS, outline_step
+from .blob_kernels_region import _BAND, _MAX_SATURATED_RIM, _MAX_SECTOR_LEVEL, _N_SECTORS
 from .blob_patches import box3, dilate, dilate_many, patch_grid
 from .blob_score import asymmetry, ellipse_distance, profile_rms, shape_residual
 

@@ -381,7 +381,8 @@ def _finer(out: dict[str, np.ndarray], ok: np.ndarray, sel: np.ndarray, level: n
 def _reference_level(image: np.ndarray) -> float:
     """95th percentile of the informative pixels (neither black nor clipped) of every fourth
     row and column: the grey level of brightly lit skin or card."""
-    hist = np.bincount(image[::4, ::4].ravel(), minlength=256)[5:251]
+    sub = np.ascontiguousarray(image[::4, ::4])
+    hist = cv2.calcHist([sub], [0], None, [256], [0, 256]).ravel()[5:251].astype(np.int64)   # exact counts
     n = int(hist.sum())
     if n < 64:
         return 255.0

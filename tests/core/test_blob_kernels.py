@@ -9,6 +9,7 @@ import pytest
 from blob_images import RenderConfig, render_frame
 
 from carapost.core import blob_kernels as K
+from carapost.core import blob_kernels_dense as KD
 from carapost.core.blob_candidates import climb, signed_image
 from carapost.core.blob_fit import (LEVELS, _flood, _plane_fit, _prefer_informative, _thresholds, search_levels)
 from carapost.core.blob_outline import fit_outline_parts
@@ -99,7 +100,7 @@ def test_plane_fit_kernel_equals_numpy(half):
     for k in range(40):
         w = mask[k].astype(np.uint8)
         out = np.zeros((s, s), np.float32)
-        sg, nu, c0, c1, c2 = K.plane_fit(p[k], w, half, 1, 0, s, 0, s, out)
+        sg, nu, c0, c1, c2 = K.plane_fit(p[k], w, half, 1, 0, s, 0, s, out, 0, s, 0, s)
         assert nu == n_used[k]
         np.testing.assert_allclose([sg, c0, c1, c2], [sigma[k], *coef[k]], rtol=1e-5, atol=1e-4)
         np.testing.assert_allclose(out, resid[k], atol=1e-3)
@@ -234,7 +235,7 @@ def test_outline_disc_dilations_as_bits_equal_stamped_and_opencv():
     the band box's columns (``_grow_bits``), equal the stamped smallest radius
     (``_grow_stamped``, used for boxes wider than 64 columns) and OpenCV's dilation by each
     disc, on random cores (holes, several pieces, at the patch border)."""
-    import carapost.core.blob_kernels_outline as KO
+    import carapost.core.blob_kernels_region as KO
 
     rng = np.random.default_rng(5)
     s = 37
@@ -261,3 +262,26 @@ def test_outline_disc_dilations_as_bits_equal_stamped_and_opencv():
             ref = cv2.dilate(core.astype(np.uint8), disc, borderType=cv2.BORDER_CONSTANT, borderValue=0) > 0
             assert np.array_equal(bits, ref[by0:by1, bx0:bx1]), (t, radius)
             assert np.array_equal(bits, grow[by0:by1, bx0:bx1] <= radius), (t, radius)
+
+
+def test_local_maxima_kernel_equals_dilation():
+    """The candidates' local maxima (``local_maxima``: threshold, then the 3x3 or 5x5
+    neighbourhood, in one pass) equal the pixels above the threshold, off the border, where
+    the map equals its OpenCV dilation — on smooth maps with plateaus (ties), on noise and on
+    maps of 3-40 px."""
+    rng = np.random.default_rng(11)
+    total = 0
+    for t in range(30):
+        h, w = (int(v) for v in rng.integers(3, 40, 2)) if t % 3 == 0 else (int(rng.integers(60, 200)), 173)
+        m = rng.normal(0.0, 3.0, (h, w)).astype(np.float32)
+        if t % 2:
+            m = np.round(cv2.GaussianBlur(m, (0, 0), 2.0) * 4.0).astype(np.float32)   # plateaus
+        thr = float(rng.uniform(-1.0, 2.0))
+        for k in (3, 5):
+            pk = np.flatnonzero(m[1:-1, 1:-1] > thr)
+            pk = (pk // (w - 2) + 1) * w + pk % (w - 2) + 1
+            ref = pk[m.ravel()[pk] >= cv2.dilate(m, np.ones((k, k), np.uint8)).ravel()[pk]]
+            got = KD.local_maxima(m, k, thr)
+            assert np.array_equal(got, ref)
+            total += len(ref)
+    assert total > 1000
