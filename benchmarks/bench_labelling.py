@@ -406,6 +406,10 @@ def main() -> None:
     emit("labelling", synthetic=lab, swaps=sw, real=rl, real_swaps=rsw, speed=sp,
          targets={"synthetic_accuracy_999": synth_ok,
                   "real_accuracy_999": {r["file"]: bool(r["assignment"]["accuracy"] >= 0.999) for r in rl},
+                  # the same against the file's labels with the samples they dispute left out
+                  # (audited segment by segment in docs/labelling.md)
+                  "real_accuracy_999_undisputed": {
+                      r["file"]: bool(r["assignment"]["accuracy_undisputed_take"] >= 0.999) for r in rl},
                   "every_injected_swap_repaired": swaps_ok,
                   "fps_5000_100_markers": bool(sp["fps_assignment_moderate"] >= 5000)},
          wall_s=round(time.perf_counter() - t0, 1))
