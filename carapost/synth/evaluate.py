@@ -19,7 +19,7 @@ from carapost.model.take import PointKind, Take
 
 from .take import GroundTruth
 
-__all__ = ["DetectionScore", "score_detections", "detection_identities", "PointScore", "score_points"]
+__all__ = ["DetectionScore", "score_detections", "detection_identities", "grazing_dots", "PointScore", "score_points"]
 
 
 @dataclass(frozen=True)
@@ -36,6 +36,18 @@ class DetectionScore:
         return {k: float(v) for k, v in self.__dict__.items()}
 
 
+def grazing_dots(truth: GroundTruth, f: int, c: int) -> np.ndarray:
+    """bool (M,): markers drawn in camera ``c`` at frame ``f`` that ``visible`` leaves out
+    because they are seen beyond :data:`~carapost.synth.take.MAX_VIEW_ANGLE_DEG` (but within
+    90 degrees, not behind a blink). Their image is a thin ellipse a detector may
+    legitimately find; occlusion is not tested for them (the generator does not)."""
+    out = (~truth.visible[f, :, c] & ~truth.occluded[f, :, c] & np.isfinite(truth.centroid_xy[f, :, c]).all(-1)
+           & (truth.view_angle_deg[f, :, c] < 90))
+    if len(truth.blink_frames) and truth.blink_frames[f]:
+        out[truth.eyelid_indices] = False
+    return out
+
+
 def _truth_dots(truth: GroundTruth, f: int, c: int, *, include_partly_hidden: bool,
                 imaged: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """Image centroids (n, 2) and ids (n,) of the dots visible in camera c, frame f.
@@ -46,11 +58,7 @@ def _truth_dots(truth: GroundTruth, f: int, c: int, *, include_partly_hidden: bo
     """
     vis = truth.visible[f, :, c].copy()
     if imaged:
-        grazing = (~truth.occluded[f, :, c] & np.isfinite(truth.centroid_xy[f, :, c]).all(-1)
-                   & (truth.view_angle_deg[f, :, c] < 90))
-        if len(truth.blink_frames) and truth.blink_frames[f]:
-            grazing[truth.eyelid_indices] = False
-        vis |= grazing
+        vis |= grazing_dots(truth, f, c)
     if not include_partly_hidden:
         vis &= ~truth.partly_hidden[f, :, c]
     bvis = truth.brim_visible[f, :, c]

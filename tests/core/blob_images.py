@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from carapost.synth.evaluate import grazing_dots
+
 __all__ = ["RenderConfig", "RenderedFrame", "render_frame", "match", "evaluate", "TruthDots", "truth_dots",
            "jpeg_roundtrip"]
 
@@ -355,7 +357,9 @@ class TruthDots:
     """The dots of one synthetic-take image (markers, then brim dots), from its ground truth.
 
     ``xy`` (n, 2) px; ``visible``, ``partly_hidden``, ``brim``, ``cut`` (touching the image
-    border) bool (n,); ``radius`` (n,) px; ``polarity`` int8 (n,) (+1 white, -1 black).
+    border), ``grazing`` (drawn, but seen beyond the generator's visibility angle:
+    :func:`carapost.synth.evaluate.grazing_dots`) bool (n,); ``radius`` (n,) px;
+    ``polarity`` int8 (n,) (+1 white, -1 black).
     """
 
     xy: np.ndarray
@@ -365,6 +369,7 @@ class TruthDots:
     polarity: np.ndarray
     brim: np.ndarray
     cut: np.ndarray
+    grazing: np.ndarray
 
 
 def truth_dots(truth, frame: int, camera: int, marker_polarity: int, brim_polarity: int,
@@ -385,7 +390,8 @@ def truth_dots(truth, frame: int, camera: int, marker_polarity: int, brim_polari
                      polarity=np.concatenate([np.full(mk.sum(), marker_polarity),
                                               np.full(br.sum(), brim_polarity)]).astype(np.int8),
                      brim=np.concatenate([np.zeros(mk.sum(), bool), np.ones(br.sum(), bool)]),
-                     cut=cut)
+                     cut=cut,
+                     grazing=np.concatenate([grazing_dots(tr, f, c)[mk], np.zeros(br.sum(), bool)]))
 
 
 def jpeg_roundtrip(image: np.ndarray, quality: int) -> np.ndarray:
