@@ -108,8 +108,8 @@ sys.path.insert(0, str(ROOT))
 from _common import emit  # noqa: E402
 from conftest import real_data_dir  # noqa: E402
 from pose2sim_case import (CAM03_MARKERS_FRAME0, CAM04_SPINE_FRAME0, LETTERBOXED, P2S_INIT, P2S_TRACKS,  # noqa: E402
-                           STATIC_BOLTS, STATIC_LANDMARKS, auto_kwargs, detect, near_person, on_body,
-                           skeleton_points, video_to_calibration)
+                           STATIC_BOLTS, STATIC_LANDMARKS, auto_kwargs, detect, file_calibration, near_person,
+                           on_body, skeleton_points, video_to_calibration)
 
 from carapost.core.auto_init import auto_initialize  # noqa: E402
 from carapost.core.bundle import bundle_adjust  # noqa: E402
@@ -121,7 +121,6 @@ from carapost.core.track_calibration import (bundle_poses, link_tracks, match_tr
 from carapost.core.triangulate import triangulate  # noqa: E402
 from carapost.core.epipolar_match import (detection_arrays, gather_xy, pair_candidates,  # noqa: E402
                                           triangulate_points)
-from carapost.io.calibration import load_calibration  # noqa: E402
 from carapost.io.sources import open_source  # noqa: E402
 
 #: Settings compared, name -> (detector, overrides of the demo's settings): white blobs (the
@@ -231,9 +230,7 @@ def _auto_summary(dets: list, intr: list, R: np.ndarray, t: np.ndarray, skel: np
 
 
 def run(root: Path, pooled: bool = False, static: bool = False, settings: bool = True, tracks: bool = False) -> dict:
-    cal = load_calibration(root / "calibration" / "Calib.qca.txt")
-    R, t = cal.poses(1)
-    R, t = R[0], t[0]
+    cal, R, t = file_calibration(root)
     intr = cal.intrinsics
     images = [open_source(root / "videos" / f"{n}.mp4").read(0) for n in cal.names]
     skel = skeleton_points(root, 0)

@@ -78,6 +78,17 @@ LETTERBOXED = (True, True, False, False)
 CALIBRATION_SIZE = (1088, 1920)
 
 
+def file_calibration(root: Path):
+    """The demo's Qualisys calibration (``calibration/Calib.qca.txt`` under ``root``):
+    ``(cal, R (C, 3, 3), t (C, 3))`` — the loaded calibration (``cal.names``,
+    ``cal.intrinsics``) and its camera poses."""
+    from carapost.io.calibration import load_calibration
+
+    cal = load_calibration(root / "calibration" / "Calib.qca.txt")
+    R, t = cal.poses(1)
+    return cal, R[0], t[0]
+
+
 def video_to_calibration(xy: np.ndarray, camera: int) -> np.ndarray:
     """Raw video px ``(n, 2)`` of ``camera`` (0-based) to the calibration's image px (the
     letterbox of :data:`LETTERBOXED` undone: scale 1088/1080, 7.1 px top margin removed)."""

@@ -175,27 +175,25 @@ def test_pose2sim_demo_frame0(real_data: Path):
         pytest.skip("Pose2Sim demo not available")
     blobs = pytest.importorskip("carapost.core.blobs")
     from carapost.core.epipolar_match import triangulate_points
-    from carapost.io.calibration import load_calibration
     from carapost.io.sources import open_source
     from carapost.model.params import BlobParameters
 
-    from pose2sim_case import P2S_BLOBS, P2S_INIT, auto_kwargs, on_body, skeleton_points
+    from pose2sim_case import P2S_BLOBS, P2S_INIT, auto_kwargs, file_calibration, on_body, skeleton_points
 
-    cal = load_calibration(root / "calibration" / "Calib.qca.txt")
-    R, t = cal.poses(1)
+    cal, R, t = file_calibration(root)
     dets = []
     for name in cal.names:
         img = open_source(root / "videos" / f"{name}.mp4").read(0)
         dets.append(blobs.detect_blobs(img, BlobParameters(**P2S_BLOBS)))
-    res = auto_initialize(dets, cal.intrinsics, R[0], t[0], P2S_INIT, **auto_kwargs())
+    res = auto_initialize(dets, cal.intrinsics, R, t, P2S_INIT, **auto_kwargs())
     nv = res.n_views
     assert res.n_points >= 6 and nv.min() >= 3, (res.n_points, nv)
     # the poses are the file's: a few three-view points leave too few degrees of freedom
     assert not res.report["auto"]["poses_bundled"]
-    assert np.allclose(res.R, R[0]) and np.allclose(res.t, t[0])
+    assert np.allclose(res.R, R) and np.allclose(res.t, t)
     # errors with the file's poses (recomputed here, not taken from the result)
     da = [detection_arrays(d, c) for c, d in enumerate(dets)]
-    _, err = triangulate_points(res.det_index, da, cal.intrinsics, R[0], t[0])
+    _, err = triangulate_points(res.det_index, da, cal.intrinsics, R, t)
     assert np.nanmedian(err) <= 1.7, np.nanmedian(err)
     assert np.nanmax(err) <= auto_kwargs()["max_reprojection_px"] + 1e-6
     body = on_body(res.xyz, skeleton_points(root, 0))
@@ -218,17 +216,14 @@ def test_pose2sim_demo_spheres(real_data: Path):
     if not root.is_dir():
         pytest.skip("Pose2Sim demo not available")
     from carapost.core.epipolar_match import triangulate_points
-    from carapost.io.calibration import load_calibration
     from carapost.io.sources import open_source
 
     from carapost.core.camera import symmetric_epipolar_distance
 
-    from pose2sim_case import (CAM03_MARKERS_FRAME0, CAM04_SPINE_FRAME0, P2S_INIT, auto_kwargs, detect, near_person,
-                               skeleton_points)
+    from pose2sim_case import (CAM03_MARKERS_FRAME0, CAM04_SPINE_FRAME0, P2S_INIT, auto_kwargs, detect,
+                               file_calibration, near_person, skeleton_points)
 
-    cal = load_calibration(root / "calibration" / "Calib.qca.txt")
-    R, t = cal.poses(1)
-    R, t = R[0], t[0]
+    cal, R, t = file_calibration(root)
     skel = skeleton_points(root, 0)
     dets = [detect(open_source(root / "videos" / f"{n}.mp4").read(0), "spheres") for n in cal.names]
     near = [int(near_person(np.c_[d["x"], d["y"]], skel, cal.intrinsics[c], R[c], t[c]).sum())
@@ -267,13 +262,11 @@ def test_pose2sim_static_scene_against_file_poses(real_data: Path):
         pytest.skip("Pose2Sim demo not available")
     from carapost.core.camera import project, symmetric_epipolar_distance
     from carapost.core.triangulate import triangulate
-    from carapost.io.calibration import load_calibration
 
-    from pose2sim_case import STATIC_BOLTS, video_to_calibration
+    from pose2sim_case import STATIC_BOLTS, file_calibration, video_to_calibration
 
-    cal = load_calibration(root / "calibration" / "Calib.qca.txt")
-    R, t = cal.poses(1)
-    R, t, intr = R[0], t[0], cal.intrinsics
+    cal, R, t = file_calibration(root)
+    intr = cal.intrinsics
     for letterbox in (False, True):
         xy = STATIC_BOLTS.copy()
         if letterbox:
@@ -302,13 +295,11 @@ def test_pose2sim_scene_refinement_moves_back_cameras(real_data: Path):
         pytest.skip("Pose2Sim demo not available")
     from carapost.core.camera import symmetric_epipolar_distance
     from carapost.core.scene_refine import refine_poses
-    from carapost.io.calibration import load_calibration
 
-    from pose2sim_case import CAM03_MARKERS_FRAME0, CAM04_SPINE_FRAME0, STATIC_LANDMARKS
+    from pose2sim_case import CAM03_MARKERS_FRAME0, CAM04_SPINE_FRAME0, STATIC_LANDMARKS, file_calibration
 
-    cal = load_calibration(root / "calibration" / "Calib.qca.txt")
-    R, t = cal.poses(1)
-    R, t, intr = R[0], t[0], cal.intrinsics
+    cal, R, t = file_calibration(root)
+    intr = cal.intrinsics
     r = refine_poses(STATIC_LANDMARKS, intr, R, t, fixed=(0, 1))
     assert np.nanmedian(r.initial_residuals) > 8.0 and np.nanmedian(r.residuals) < 1.5
     assert np.all((r.turned_deg[2:] > 0.4) & (r.turned_deg[2:] < 2.0)), r.turned_deg
@@ -336,14 +327,12 @@ def test_pose2sim_marker_tracks_match_but_do_not_calibrate(real_data: Path):
     from carapost.core.track_calibration import (link_tracks, match_tracks, moving_tracks, refine_extrinsics,
                                                  trajectory_observations)
     from carapost.core.triangulate import triangulate
-    from carapost.io.calibration import load_calibration
     from carapost.io.sources import open_source
 
-    from pose2sim_case import P2S_TRACKS, STATIC_LANDMARKS, detect
+    from pose2sim_case import P2S_TRACKS, STATIC_LANDMARKS, detect, file_calibration
 
-    cal = load_calibration(root / "calibration" / "Calib.qca.txt")
-    R, t = cal.poses(1)
-    R, t, intr = R[0], t[0], cal.intrinsics
+    cal, R, t = file_calibration(root)
+    intr = cal.intrinsics
     tracks = []
     for n in cal.names:
         src = open_source(root / "videos" / f"{n}.mp4")
