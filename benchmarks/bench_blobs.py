@@ -315,14 +315,25 @@ def load_base(tree: str):
     (its modules import each other relatively, so both versions live in one process)."""
     import importlib
     import importlib.util
+    import tempfile
+
+    from numba.core import config as numba_config
 
     pkg = Path(tree).resolve() / "carapost"
     spec = importlib.util.spec_from_file_location("carapost_base", pkg / "__init__.py",
                                                   submodule_search_locations=[str(pkg)])
     mod = importlib.util.module_from_spec(spec)
     sys.modules["carapost_base"] = mod
-    spec.loader.exec_module(mod)
-    return importlib.import_module("carapost_base.core.blobs").detect_blobs
+    # The base's kernels are cached apart: in the tree's own __pycache__ (numba's default)
+    # they would be recorded under the module name carapost_base, and every later import of
+    # that tree as carapost would fail loading them.
+    saved = numba_config.CACHE_DIR
+    numba_config.CACHE_DIR = str(Path(tempfile.gettempdir()) / "carapost_base_numba")
+    try:
+        spec.loader.exec_module(mod)
+        return importlib.import_module("carapost_base.core.blobs").detect_blobs
+    finally:
+        numba_config.CACHE_DIR = saved
 
 
 def table_difference(a: dict, b: dict) -> tuple[int, float, float]:
