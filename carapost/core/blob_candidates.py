@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from .blob_kernels_dense import climb_step, laplacian_histograms, local_maxima
+from .blob_kernels_dense import climb_step, laplacian_histograms, local_maxima, ring_samples
 
 __all__ = ["Candidates", "ResponseLevel", "RingTest", "signed_image", "pyramid", "detection_scales", "climb",
            "responses", "find_candidates", "ring_test", "pixel_noise", "informative", "OUTER_SIDE",
@@ -364,10 +364,11 @@ class RingTest:
 
 _RING_N = 12
 _RING_ANG = np.linspace(0.0, 2 * np.pi, _RING_N, endpoint=False)
+_RING_SIN, _RING_COS = np.sin(_RING_ANG), np.cos(_RING_ANG)
 
 
 def ring_test(pyr: list[np.ndarray], levels: list[ResponseLevel], cand: Candidates, noise: dict[int, float],
-              polarity: int) -> RingTest:
+              polarity: int, compiled: bool = True) -> RingTest:
     """Inner-box mean and ring samples of every candidate on its detection level.
 
     The ring has 12 samples at ``1.5 r + 1.5`` px around the candidate (``r`` the radius of
@@ -385,6 +386,9 @@ def ring_test(pyr: list[np.ndarray], levels: list[ResponseLevel], cand: Candidat
     noise : dict of int to float
         Pixel noise per level (filled in when missing).
     polarity : int
+    compiled : bool
+        The ring's samples from :func:`carapost.core.blob_kernels_dense.ring_samples` (the
+        same values), else numpy indexing and sorting.
     """
     n = len(cand)
     centre = np.zeros(n)
@@ -416,9 +420,12 @@ def ring_test(pyr: list[np.ndarray], levels: list[ResponseLevel], cand: Candidat
         c = n_out / (n_out - side * side)
         centre[sel] = resp / c + lv.outer.ravel()[flat] * (1.0 / n_out)
         rho = 1.5 * cand.radius[sel] / 2.0 ** k + 1.5
-        rr = np.clip(np.rint(cy[:, None] + rho[:, None] * np.sin(_RING_ANG)[None]).astype(np.int64), 0, H - 1)
-        cc = np.clip(np.rint(cx[:, None] + rho[:, None] * np.cos(_RING_ANG)[None]).astype(np.int64), 0, W - 1)
-        ring[sel] = np.sort(img[rr, cc].astype(np.float64), axis=1)
+        if compiled:
+            ring[sel] = ring_samples(img, cx, cy, rho, _RING_SIN, _RING_COS)
+        else:
+            rr = np.clip(np.rint(cy[:, None] + rho[:, None] * _RING_SIN[None]).astype(np.int64), 0, H - 1)
+            cc = np.clip(np.rint(cx[:, None] + rho[:, None] * _RING_COS[None]).astype(np.int64), 0, W - 1)
+            ring[sel] = np.sort(img[rr, cc].astype(np.float64), axis=1)
         nz[sel] = noise[k]
     return RingTest(centre=centre, ring=ring, noise=nz, polarity=polarity)
 

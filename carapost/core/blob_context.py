@@ -12,6 +12,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from .blob_kernels_dense import context_points
+
 __all__ = ["context_ring", "sample_bilinear"]
 
 
@@ -21,6 +23,9 @@ _CTX_SAMPLES = 16
 _CTX_SCALE, _CTX_GROW = 2.0, 1.5
 #: Scale of the inner context ring (just outside the blob's edge: a pupil's iris).
 _CTX_INNER_SCALE = 1.3
+#: Cosine and sine of the samples' angles.
+_COS_T = np.cos(np.arange(_CTX_SAMPLES) * (2.0 * np.pi / _CTX_SAMPLES))
+_SIN_T = np.sin(np.arange(_CTX_SAMPLES) * (2.0 * np.pi / _CTX_SAMPLES))
 
 
 _SAMPLE_ROW = 1024  # cv2.remap refuses maps of 32767 or more rows or columns: samples go in rows of this length
@@ -39,7 +44,7 @@ def sample_bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray
     return out.ravel()[:n].astype(np.float64)
 
 
-def context_ring(ctx_img: np.ndarray, out: dict[str, np.ndarray], polarity: int) -> None:
+def context_ring(ctx_img: np.ndarray, out: dict[str, np.ndarray], polarity: int, compiled: bool = True) -> None:
     """Context of each fitted blob at about twice its size, in units of its contrast.
 
     Samples the signed, 3x3-smoothed image ``ctx_img`` (blobs bright) at :data:`_CTX_SAMPLES`
@@ -49,7 +54,8 @@ def context_ring(ctx_img: np.ndarray, out: dict[str, np.ndarray], polarity: int)
     pupil inside its iris) and ``out["ctx_line"]`` (the larger of the two opposite samples'
     minimum: a line or band through the blob, as at a lip corner or on an eyebrow), and
     ``out["ctx_inner"]``, the mean on a second ring at ``_CTX_INNER_SCALE`` (a pupil's iris),
-    ``(N,)``.
+    ``(N,)``. ``compiled``: the sample points from
+    :func:`carapost.core.blob_kernels_dense.context_points` (the same points), else numpy.
     """
     n = len(out["x"])
     if n == 0:
@@ -57,16 +63,19 @@ def context_ring(ctx_img: np.ndarray, out: dict[str, np.ndarray], polarity: int)
             out[k] = np.zeros(0)
         return
     H, W = ctx_img.shape
-    t = np.arange(_CTX_SAMPLES) * (2.0 * np.pi / _CTX_SAMPLES)
-    maj = np.nan_to_num(out["major"])[:, None]
-    mnr = np.nan_to_num(out["minor"])[:, None]
-    u = np.concatenate([(_CTX_SCALE * maj + _CTX_GROW) * np.cos(t)[None],
-                        (_CTX_INNER_SCALE * maj + _CTX_GROW) * np.cos(t)[None]], axis=1)
-    v = np.concatenate([(_CTX_SCALE * mnr + _CTX_GROW) * np.sin(t)[None],
-                        (_CTX_INNER_SCALE * mnr + _CTX_GROW) * np.sin(t)[None]], axis=1)
-    ca, sa = np.cos(out["angle"])[:, None], np.sin(out["angle"])[:, None]
-    sx = np.clip(np.nan_to_num(out["x"])[:, None] + u * ca - v * sa, 0, W - 1).astype(np.float32)
-    sy = np.clip(np.nan_to_num(out["y"])[:, None] + u * sa + v * ca, 0, H - 1).astype(np.float32)
+    if compiled:
+        sx, sy = context_points(out["x"], out["y"], out["major"], out["minor"], np.cos(out["angle"]),
+                                np.sin(out["angle"]), _COS_T, _SIN_T, (_CTX_SCALE, _CTX_INNER_SCALE), _CTX_GROW, (H, W))
+    else:
+        maj = np.nan_to_num(out["major"])[:, None]
+        mnr = np.nan_to_num(out["minor"])[:, None]
+        u = np.concatenate([(_CTX_SCALE * maj + _CTX_GROW) * _COS_T[None],
+                            (_CTX_INNER_SCALE * maj + _CTX_GROW) * _COS_T[None]], axis=1)
+        v = np.concatenate([(_CTX_SCALE * mnr + _CTX_GROW) * _SIN_T[None],
+                            (_CTX_INNER_SCALE * mnr + _CTX_GROW) * _SIN_T[None]], axis=1)
+        ca, sa = np.cos(out["angle"])[:, None], np.sin(out["angle"])[:, None]
+        sx = np.clip(np.nan_to_num(out["x"])[:, None] + u * ca - v * sa, 0, W - 1).astype(np.float32)
+        sy = np.clip(np.nan_to_num(out["y"])[:, None] + u * sa + v * ca, 0, H - 1).astype(np.float32)
     vals = sample_bilinear(ctx_img, sx.ravel(), sy.ravel()).reshape(n, 2 * _CTX_SAMPLES)
     bg = out["background"] if polarity > 0 else 255.0 - out["background"]
     sig = (vals - bg[:, None]) / np.maximum(out["contrast"], 1.0)[:, None]

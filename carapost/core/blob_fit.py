@@ -6,7 +6,8 @@ over candidates in Python: each step is one call of a compiled kernel that loops
 candidates and their pixels (:mod:`carapost.core.blob_kernels`, ``blob_kernels_outline``, ``blob_kernels_region``;
 the numpy building blocks here — :func:`_plane_fit`, :func:`_flood`, :func:`_moments` — are
 those of the numpy reference of steps 3-6 and of the kernels' tests). Steps 1-2 are
-:func:`search_levels` (its :class:`LevelSearch` is kept), steps 3-5 :func:`fit_outlines` (in
+:func:`search_levels` (:func:`ring_search`, then :func:`level_search`; its :class:`LevelSearch`
+is kept), steps 3-5 :func:`fit_outlines` (in
 :mod:`carapost.core.blob_outline`, on patches cropped to the core's neighbourhood), so
 that the detector can reject candidates after step 2 (the gate) and fit alternative outlines
 (a core forced to a higher level) without repeating steps 1-2; :func:`fit_patches` runs both
@@ -52,7 +53,8 @@ from .blob_kernels import FP as _FP
 from .blob_kernels import LEVELS
 from .blob_patches import K3, MONO, MONO_INDEX, SEP, Patches, dot_rows, extract_patches, mosaic
 
-__all__ = ["PatchFit", "fit_patches", "patch_half_size", "LEVELS"]
+__all__ = ["PatchFit", "fit_patches", "patch_half_size", "LEVELS", "LevelSearch", "RingSearch", "ring_search",
+           "level_search", "search_levels"]
 
 _FLOOD_ROUND = 4  # flood steps between convergence checks (:func:`_flood`, the numpy reference)
 DEBUG: dict | None = None
@@ -364,47 +366,71 @@ class LevelSearch:
         return keep, r[keep]
 
 
-def search_levels(pat: Patches, radius: np.ndarray, *, max_radius: np.ndarray,
-                  pixel_noise: np.ndarray, pre_gate=None) -> LevelSearch:
-    """Steps 1 (ring background, peak) and 2 (flood levels, core level) of the fit.
+@dataclass
+class RingSearch:
+    """Step 1 of the fit for a stack of patches (:func:`ring_search`): arrays over all ``N``
+    patches of the stack."""
 
-    ``radius``, ``max_radius`` and ``pixel_noise`` are per patch (level px / grey levels of
-    the level each patch came from). ``pre_gate(alive, peak, ring_noise, ring_plane)``
-    (optional) is called after step 1 with the patches that have a peak (int (A,)), their peak
-    and ring residual std (A,) and ring plane coefficients (A, 3), and returns which of them
-    go on to step 2 (bool (A,)); the others are listed in ``pregated``.
-    """
+    pat: Patches
+    radius: np.ndarray       # float (N,): radius estimates (level px)
+    d0: np.ndarray           # float32 (N, S, S): patch minus ring plane
+    sig0: np.ndarray         # (N,) ring residual std
+    c0: np.ndarray           # float32 (N, 3) ring plane
+    pk: np.ndarray           # int64 (N,): flat index of the peak
+    peak: np.ndarray         # (N,) peak of the 3x3 mean over the ring plane (grey levels)
+    alive: np.ndarray        # int (A,): patches with a peak above the ring noise
+
+
+def ring_search(pat: Patches, radius: np.ndarray) -> RingSearch:
+    """Step 1 (ring background, peak) of the fit for the patch stack ``pat`` with radius
+    estimates ``radius`` (N,) (level px): one compiled call (:func:`blob_kernels.ring_step`);
+    ``alive`` lists the patches whose peak stands above the ring noise."""
+    d0, sig0, n0, c0, pk, peak = blob_kernels.ring_step(pat.pu, pat.bad, pat.sat, np.asarray(radius, np.float32),
+                                                       pat.half)
+    alive = np.flatnonzero((peak > 1.0 * sig0) & (peak > 0.5) & (n0 >= 8))
+    return RingSearch(pat, radius, d0, sig0, c0, pk, peak, alive)
+
+
+def level_search(ring: RingSearch, go: np.ndarray | None = None, *, max_radius: np.ndarray,
+                 pixel_noise: np.ndarray) -> LevelSearch:
+    """Step 2 (flood levels, core level) of the fit on the patches of ``ring`` with a peak;
+    ``go`` (bool (A,) over ``ring.alive``, optional: the pre-gate's verdict) says which of them
+    are searched, the others are listed in the result's ``pregated``. ``max_radius`` and
+    ``pixel_noise`` are per patch of the stack (N,) (level px / grey levels of the level each
+    patch came from). One compiled call (:func:`blob_kernels.level_step`)."""
+    pat = ring.pat
     half = pat.half
-    n = len(pat)
     S = 2 * half + 1
-    pu = pat.pu
-    badp, satp = pat.bad, pat.sat
-
-    # 1. Ring background and peak (one compiled call, :func:`blob_kernels.ring_step`).
-    d0, ds, sig0, n0, c0, pk, peak = blob_kernels.ring_step(pu, badp, satp, np.asarray(radius, np.float32), half)
-    ok = (peak > 1.0 * sig0) & (peak > 0.5) & (n0 >= 8)
-    alive = np.flatnonzero(ok)
+    alive = ring.alive
     pregated = np.zeros(0, np.int64)
-    if pre_gate is not None and len(alive):
-        go = pre_gate(alive, peak[alive], sig0[alive], c0[alive])
+    if go is not None:
         pregated, alive = alive[~go], alive[go]
-
-    # 2. Level search on the flood levels (fixed point: the peak is _FP), one compiled call
-    # (:func:`blob_kernels.level_step`).
+    # Flood levels in fixed point (the peak is _FP).
     n = len(alive)
-    pu, badp, satp, ds, d0 = pu[alive], badp[alive], satp[alive], ds[alive], d0[alive]
-    pk, peak = pk[alive], peak[alive]
+    pu, badp, satp, d0 = pat.pu[alive], pat.bad[alive], pat.sat[alive], ring.d0[alive]
+    pk, peak, sig0, c0 = ring.pk[alive], ring.peak[alive], ring.sig0[alive], ring.c0[alive]
     max_radius, pixel_noise = np.asarray(max_radius, float)[alive], np.asarray(pixel_noise, float)[alive]
     K = len(LEVELS)
     if n == 0:
         z = np.zeros((0, S, S), np.uint8)
-        return LevelSearch(len(pat), half, alive, pu, badp, satp, d0, sig0[alive], c0[alive], z, z,
-                           np.zeros((0, K)), np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0), np.zeros(0),
-                           pregated)
-    lvl, L, area, fill, edge_max, valid, k_found, has = blob_kernels.level_step(ds, peak, pk, half, max_radius,
+        return LevelSearch(len(pat), half, alive, pu, badp, satp, d0, sig0, c0, z, z, np.zeros((0, K)),
+                           np.zeros(0, np.int64), np.zeros(0, bool), np.zeros(0), np.zeros(0), pregated)
+    lvl, L, area, fill, edge_max, valid, k_found, has = blob_kernels.level_step(d0, peak, pk, half, max_radius,
                                                                               pixel_noise)
     if DEBUG is not None:
         DEBUG.update(dict(alive=alive, L=L, area=area, fill=fill, edge_max=edge_max, valid=valid, kc=k_found, lvl=lvl,
-                          p=pu, peak=peak, pky=pk // S, pkx=pk % S, sig0=sig0[alive], half=half))
-    return LevelSearch(len(pat), half, alive, pu, badp, satp, d0, sig0[alive], c0[alive], L, lvl, area,
+                          p=pu, peak=peak, pky=pk // S, pkx=pk % S, sig0=sig0, half=half))
+    return LevelSearch(len(pat), half, alive, pu, badp, satp, d0, sig0, c0, L, lvl, area,
                        k_found, has, peak, fill[np.arange(n), k_found], pregated)
+
+
+def search_levels(pat: Patches, radius: np.ndarray, *, max_radius: np.ndarray,
+                  pixel_noise: np.ndarray) -> LevelSearch:
+    """Steps 1 (ring background, peak: :func:`ring_search`) and 2 (flood levels, core level:
+    :func:`level_search`) of the fit, without a pre-gate.
+
+    ``radius``, ``max_radius`` and ``pixel_noise`` are per patch (N,) (level px / grey levels
+    of the level each patch came from). The detector runs the two steps apart
+    (:func:`carapost.core.blobs._fit`: the pre-gate between them, over all its stacks at once).
+    """
+    return level_search(ring_search(pat, radius), max_radius=max_radius, pixel_noise=pixel_noise)

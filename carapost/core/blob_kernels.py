@@ -174,24 +174,25 @@ def mean3(d, i, j):
 def ring_step(pu: np.ndarray, bad: np.ndarray, sat: np.ndarray, radius: np.ndarray, half: int) -> tuple:
     """Step 1 of the fit for a stack: the ring plane (pixels outside ``1.5 r + 1.5`` px inside
     the patch's disc, not bad or saturated, preferring pixels that are not black or clipped),
-    the signal over it ``d0``, its 3x3 mean ``ds`` and the peak (largest ``ds`` within
-    ``max(1.5, r / 2)`` px of the centre).
+    the signal over it ``d0`` and the peak (largest 3x3 mean of ``d0`` within ``max(1.5, r /
+    2)`` px of the centre; the 3x3 mean of the whole patch is left to :func:`level_step`, for
+    the patches that get there).
 
     Parameters: ``pu`` uint8 (N, S, S), ``bad``/``sat`` bool (N, S, S), ``radius`` float32 (N,).
-    Returns ``d0, ds`` float32 (N, S, S), ``sig0, n0`` float64 (N,), ``c0`` float32 (N, 3),
+    Returns ``d0`` float32 (N, S, S), ``sig0, n0`` float64 (N,), ``c0`` float32 (N, 3),
     ``pk`` int64 (N,) flat index of the peak, ``peak`` float64 (N,).
     """
     n, s = pu.shape[0], pu.shape[1]
-    out = (np.empty((n, s, s), np.float32), np.empty((n, s, s), np.float32), np.zeros(n), np.zeros(n),
-           np.zeros((n, 3), np.float32), np.zeros(n, np.int64), np.zeros(n))
+    out = (np.empty((n, s, s), np.float32), np.zeros(n), np.zeros(n), np.zeros((n, 3), np.float32),
+           np.zeros(n, np.int64), np.zeros(n))
     _ring_step(pu, bad, sat, np.asarray(radius, np.float32), int(half), *out, np.empty((s, s), np.uint8),
-               np.empty((s + 2, s)))
+               np.empty((s + 2, s)), np.empty((s, s), np.float32))
     return out
 
 
 @nb.njit(**_JIT)
-def _ring_step(pu, bad, sat, radius, half, d0, ds, sig0, n0, c0, pk, peak, w, rs):
-    """:func:`ring_step` into its outputs (``w``, ``rs``: work space)."""
+def _ring_step(pu, bad, sat, radius, half, d0, sig0, n0, c0, pk, peak, w, rs, ds):
+    """:func:`ring_step` into its outputs (``w``, ``rs``, ``ds``: work space)."""
     n = pu.shape[0]
     s = pu.shape[1]
     hd = np.float32(half * half)
@@ -225,34 +226,35 @@ def _ring_step(pu, bad, sat, radius, half, d0, ds, sig0, n0, c0, pk, peak, w, rs
         c0[k, 0] = a
         c0[k, 1] = b
         c0[k, 2] = c
-        box3(d0[k], ds[k], 0, s, 0, s, rs)
         rn = max(np.float32(1.5), np.float32(0.5) * r0)
         rn2 = rn * rn
         best = -np.inf
         bi = 0
         ext = min(int(np.ceil(rn)), half)
+        box3(d0[k], ds, half - ext, half + ext + 1, half - ext, half + ext + 1, rs)   # only where the peak may be
         for i in range(half - ext, half + ext + 1):
             for j in range(half - ext, half + ext + 1):
                 xf = np.float32(j - half)
                 yf = np.float32(i - half)
-                if xf * xf + yf * yf <= rn2 and ds[k, i, j] > best:
-                    best = ds[k, i, j]
+                if xf * xf + yf * yf <= rn2 and ds[i, j] > best:
+                    best = ds[i, j]
                     bi = i * s + j
         pk[k] = bi
         peak[k] = best
-    return d0, ds, sig0, n0, c0, pk, peak
+    return d0, sig0, n0, c0, pk, peak
 
 
 @nb.njit(**_JIT)
 def _flood_one(lv, py, px, floor, out, heads, nxt):
     """Flood levels of one patch: ``out[p]`` = the largest ``t >= floor`` such that ``p`` is
     8-connected to ``(py, px)`` through pixels of ``lv >= t`` (morphological reconstruction of
-    the peak under ``lv``), by a priority flood over the 256 levels (exact)."""
+    the peak under ``max(lv, floor)``), by a priority flood over the levels above the floor
+    (exact; ``lv`` below the floor needs no clipping: such a pixel is never raised)."""
     s = lv.shape[0]
     for i in range(s):
         for j in range(s):
             out[i, j] = floor
-    for v in range(256):
+    for v in range(floor + 1, 256):     # levels at or below the floor are never queued
         heads[v] = -1
     top = max(int(lv[py, px]), floor)
     out[py, px] = top
@@ -281,46 +283,47 @@ def _flood_one(lv, py, px, floor, out, heads, nxt):
                     heads[t] = q
 
 
-def level_step(ds: np.ndarray, peak: np.ndarray, pk: np.ndarray, half: int, max_radius: np.ndarray,
+def level_step(d0: np.ndarray, peak: np.ndarray, pk: np.ndarray, half: int, max_radius: np.ndarray,
                pixel_noise: np.ndarray) -> tuple:
     """Step 2 of the fit for a stack (see :func:`carapost.core.blob_fit.search_levels`): the
-    smoothed signal in fixed point (the peak is :data:`FP`) ``lvl``, the flood levels ``L`` (uint8,
+    smoothed signal (the 3x3 mean of the signal over the ring plane ``d0``, :func:`box3`) in
+    fixed point (the peak is :data:`FP`) ``lvl``, the flood levels ``L`` (uint8,
     at least 99), per level of :data:`LEVEL_THRESHOLDS` the area and fill (area over its
     moment ellipse's) of the peak's component, the largest flood level on the patch border,
     whether each level is a blob (``valid``), the core level found ``k_found`` and whether
     an isolated core exists ``has``.
 
-    Parameters: ``ds`` float32 (N, S, S), ``peak`` float64 (N,), ``pk`` int64 (N,) flat peak
+    Parameters: ``d0`` float32 (N, S, S), ``peak`` float64 (N,), ``pk`` int64 (N,) flat peak
     index, ``max_radius``, ``pixel_noise`` float64 (N,).
     """
-    n, s = ds.shape[0], ds.shape[1]
+    n, s = d0.shape[0], d0.shape[1]
     K = len(LEVELS)
     out = (np.empty((n, s, s), np.uint8), np.empty((n, s, s), np.uint8), np.zeros((n, K)), np.zeros((n, K)),
            np.zeros(n, np.int64), np.zeros((n, K), bool), np.zeros(n, np.int64), np.zeros(n, bool))
-    _level_step(ds, np.asarray(peak, float), np.asarray(pk, np.int64), int(half), np.asarray(max_radius, float),
+    _level_step(d0, np.asarray(peak, float), np.asarray(pk, np.int64), int(half), np.asarray(max_radius, float),
                 np.asarray(pixel_noise, float), *out, np.empty(256, np.int64), np.empty(s * s, np.int64),
-                np.empty((s, s), np.uint8), np.empty((s, s), np.int64), np.zeros((K, 6)))
+                np.zeros((K, 6)), np.empty((s, s), np.float32), np.empty((s + 2, s)))
     return out
 
 
 @nb.njit(**_JIT)
-def _level_step(ds, peak, pk, half, max_radius, pixel_noise, lvl, L, area, fill, edge_max, valid, k_found, has,
-                heads, nxt, lv, Lk, mom):
+def _level_step(d0, peak, pk, half, max_radius, pixel_noise, lvl, L, area, fill, edge_max, valid, k_found, has,
+                heads, nxt, mom, ds, rs):
     """:func:`level_step` into its outputs (the last five: work space)."""
-    n = ds.shape[0]
-    s = ds.shape[1]
+    n = d0.shape[0]
+    s = d0.shape[1]
     K = LEVEL_THRESHOLDS.shape[0]
     floor = int(LEVEL_THRESHOLDS[0]) - 1
     for k in range(n):
         scale = np.float32(FP / peak[k])
+        box3(d0[k], ds, 0, s, 0, s, rs)
         for i in range(s):
             for j in range(s):
-                v = ds[k, i, j] * scale
+                v = ds[i, j] * scale
                 v = min(max(v, np.float32(0.0)), np.float32(255.0))
-                u = np.uint8(int(v))
-                lvl[k, i, j] = u
-                lv[i, j] = max(u, floor)
-        _flood_one(lv, pk[k] // s, pk[k] % s, floor, Lk, heads, nxt)
+                lvl[k, i, j] = np.uint8(int(v))
+        Lk = L[k]
+        _flood_one(lvl[k], pk[k] // s, pk[k] % s, floor, Lk, heads, nxt)     # straight into L
         for q in range(K):
             for c in range(6):
                 mom[q, c] = 0.0
@@ -328,8 +331,7 @@ def _level_step(ds, peak, pk, half, max_radius, pixel_noise, lvl, L, area, fill,
         for i in range(s):
             y = float(i - half)
             for j in range(s):
-                t = Lk[i, j]
-                L[k, i, j] = t
+                t = int(Lk[i, j])
                 if i == 0 or j == 0 or i == s - 1 or j == s - 1:
                     em = max(em, t)
                 if t < LEVEL_THRESHOLDS[0]:

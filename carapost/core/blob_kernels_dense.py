@@ -15,7 +15,7 @@ import numpy as np
 
 from .blob_kernels import FLAT_HI, FLAT_LO
 
-__all__ = ["local_maxima", "climb_step", "laplacian_histograms"]
+__all__ = ["local_maxima", "climb_step", "laplacian_histograms", "ring_samples", "context_points"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -140,3 +140,117 @@ def _laplacian_histograms(img, keep, every):
             every[v] += 1
             if FLAT_LO < c < FLAT_HI:
                 keep[v] += 1
+
+
+#: A sorting network of 12 inputs (39 compare-exchanges in 9 layers; checked on every 0/1
+#: input in ``test_ring_samples_kernel_equals_numpy``): the ring's samples sorted without
+#: branches.
+_NET12 = np.array([[0, 8], [1, 7], [2, 6], [3, 11], [4, 10], [5, 9],
+                   [0, 1], [2, 5], [3, 4], [6, 9], [7, 8], [10, 11],
+                   [0, 2], [1, 6], [5, 10], [9, 11],
+                   [0, 3], [1, 2], [4, 6], [5, 7], [8, 11], [9, 10],
+                   [1, 4], [3, 5], [6, 8], [7, 10],
+                   [1, 3], [2, 5], [6, 9], [8, 10],
+                   [2, 3], [4, 5], [6, 7], [8, 9],
+                   [4, 6], [5, 7],
+                   [3, 4], [5, 6], [7, 8]], np.int64)
+
+
+def sorting_network(n: int) -> np.ndarray:
+    """Compare-exchange pairs ``(C, 2)`` int64 that sort ``n`` values in place (``a < b``:
+    the smaller goes to ``a``): :data:`_NET12` for 12, else odd-even transposition (``n``
+    rounds)."""
+    if n == 12:
+        return _NET12
+    pairs = [(i, i + 1) for r in range(n) for i in range(r % 2, n - 1, 2)]
+    return np.array(pairs, np.int64).reshape(-1, 2)
+
+
+def ring_samples(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, rho: np.ndarray, sin_a: np.ndarray,
+                 cos_a: np.ndarray) -> np.ndarray:
+    """:func:`_ring_samples` (see there): returns the sorted ring float64 (N, len(sin_a))."""
+    out = np.empty((len(cx), len(sin_a)))
+    _ring_samples(np.ascontiguousarray(img), np.asarray(cx, np.int64), np.asarray(cy, np.int64),
+                  np.asarray(rho, float), np.asarray(sin_a, float), np.asarray(cos_a, float),
+                  sorting_network(len(sin_a)), out)
+    return out
+
+
+@nb.njit(**_JIT)
+def _ring_samples(img, cx, cy, rho, sin_a, cos_a, net, out):
+    """The ring of :func:`carapost.core.blob_candidates.ring_test` compiled: for each candidate
+    pixel ``(cx, cy)`` (int64 (N,)) the pixels of ``img`` (uint8 (H, W)) at ``rint(c + rho
+    (cos, sin))`` of the angles (``sin_a``, ``cos_a`` float64 (R,)), clipped to the image,
+    sorted ascending by the compare-exchanges ``net`` (:func:`sorting_network`) into ``out``
+    float64 (N, R)."""
+    H, W = img.shape
+    R = sin_a.shape[0]
+    for k in range(cx.shape[0]):
+        r = rho[k]
+        row = out[k]
+        for a in range(R):
+            y = min(max(int(np.rint(cy[k] + r * sin_a[a])), 0), H - 1)
+            x = min(max(int(np.rint(cx[k] + r * cos_a[a])), 0), W - 1)
+            row[a] = float(img[y, x])
+        for c in range(net.shape[0]):
+            i, j = net[c, 0], net[c, 1]
+            u, v = row[i], row[j]
+            row[i] = min(u, v)
+            row[j] = max(u, v)
+
+
+def context_points(x: np.ndarray, y: np.ndarray, major: np.ndarray, minor: np.ndarray, cos_angle: np.ndarray,
+                   sin_angle: np.ndarray, cos_t: np.ndarray, sin_t: np.ndarray, scales: tuple[float, float],
+                   grow: float, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_context_points` (see there): returns ``sx, sy`` float32 (N, 2 T)."""
+    n, t = len(x), len(cos_t)
+    sx, sy = np.empty((n, 2 * t), np.float32), np.empty((n, 2 * t), np.float32)
+    f = [np.asarray(v, float) for v in (x, y, major, minor, cos_angle, sin_angle, cos_t, sin_t)]
+    _context_points(*f, float(scales[0]), float(scales[1]), float(grow), int(shape[0]), int(shape[1]), sx, sy)
+    return sx, sy
+
+
+@nb.njit(**dict(_JIT, inline="always"))
+def _finite(v):
+    """``np.nan_to_num`` of one float64."""
+    if v != v:
+        return 0.0
+    if v == np.inf:
+        return np.finfo(np.float64).max
+    if v == -np.inf:
+        return -np.finfo(np.float64).max
+    return v
+
+
+@nb.njit(**dict(_JIT, inline="always"))
+def _clip_nan(v, hi):
+    """``np.clip(v, 0, hi)`` of one float64 (NaN stays NaN)."""
+    if v != v:
+        return v
+    return min(max(v, 0.0), hi)
+
+
+@nb.njit(**_JIT)
+def _context_points(x, y, major, minor, ca, sa, cos_t, sin_t, s_out, s_in, grow, H, W, sx, sy):
+    """The sample points of :func:`carapost.core.blob_context.context_ring` compiled: for each
+    ellipse (centre ``x, y``, semi-axes ``major, minor``, ``ca, sa`` the cosine and sine of its
+    angle; float64 (N,); NaN and infinities as ``np.nan_to_num`` makes them) the points at the
+    angles ``cos_t, sin_t`` (T,) of the ellipse scaled by ``s_out`` (columns ``0..T-1``) and by
+    ``s_in`` (``T..2T-1``), both grown by ``grow`` px, clipped to the ``H x W`` image, into
+    ``sx, sy`` float32 (N, 2 T), with numpy's float64 arithmetic in its order."""
+    T = cos_t.shape[0]
+    for k in range(x.shape[0]):
+        maj = _finite(major[k])
+        mnr = _finite(minor[k])
+        xk = _finite(x[k])
+        yk = _finite(y[k])
+        for ring in range(2):
+            s = s_out if ring == 0 else s_in
+            au = s * maj + grow
+            av = s * mnr + grow
+            for t in range(T):
+                u = au * cos_t[t]
+                v = av * sin_t[t]
+                c = ring * T + t
+                sx[k, c] = np.float32(_clip_nan(xk + u * ca[k] - v * sa[k], W - 1.0))
+                sy[k, c] = np.float32(_clip_nan(yk + u * sa[k] + v * ca[k], H - 1.0))

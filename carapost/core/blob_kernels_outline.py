@@ -293,11 +293,10 @@ def _outline_step(pu, bad, sat, d0, lvl, L, area, sig0, c0, k_found, has, rows, 
         o[10], o[11], o[12], o[13], o[14], o[15] = _LEVELS[k], _LEVELS[k_found[r]], area_ratio, shape, asym, prms
         o[16], o[17], o[18], o[19] = m0, 1.0 - sec_max, m0 / m0_full, sat_near
         oks[t] = ok
-        # Leave the work arrays clean for the next row's boxes.
-        for i in range(y0, y1):
-            for j in range(x0, x1):
-                win[i, j] = False
-                band[i, j] = 0
+        # Leave the work arrays clean for the next row's boxes (``band`` and ``win`` need not
+        # be: every step reads them only in the band's box, where each row rewrites them).
+        for i in range(by0, by1):
+            for j in range(bx0, bx1):
                 wb[i, j] = 0
         for i in range(wy0, wy1):
             for j in range(wx0, wx1):

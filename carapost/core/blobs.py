@@ -6,7 +6,8 @@ ellipse):
 1. A dense, multi-scale centre-surround response normalised by the image's own clutter
    (:mod:`carapost.core.blob_candidates`) proposes candidate centres; a ring test (contrast
    against a ring of pixels around each) removes edges and faint texture.
-2. Candidates that climb to the same peak (one blob seen at several scales) are fitted once.
+2. Candidates that climb to the same peak (one blob seen at several scales) are fitted once
+   (:mod:`carapost.core.blob_groups`).
    Each fit (:mod:`carapost.core.blob_fit`) searches the levels of its peak for the blob's
    core, models its local background, and measures the ellipse, sub-pixel centre and shape.
    Candidates whose core was found low (a dot merging with an eyebrow or a lip line) are
@@ -30,10 +31,7 @@ import numpy as np
 from ..model.detections import BLACK, DETECTION_FIELDS, WHITE
 from ..model.params import BlobParameters
 from . import blob_score
-from .blob_context import context_ring
 from .blob_candidates import (
-    Candidates,
-    climb,
     detection_scales,
     find_candidates,
     pixel_noise,
@@ -43,7 +41,9 @@ from .blob_candidates import (
     ring_test,
     signed_image,
 )
-from .blob_fit import LEVELS, LevelSearch, patch_half_size, search_levels
+from .blob_context import context_ring
+from .blob_fit import LEVELS, LevelSearch, level_search, patch_half_size, ring_search
+from .blob_groups import representatives
 from .blob_kernels_outline import OUTPUT_FIELDS
 from .blob_outline import outline_tables
 from .blob_patches import Patches, extract_patches
@@ -62,7 +62,6 @@ RING_MIN_CNR = 6.0
 #: ... and the ring's median by this fraction of the background grey level (paint is a large
 #: relative change, skin texture a small one).
 RING_MIN_WEBER = 0.12
-_MERGE_PLATEAUS = True
 #: Core levels of the alternative outlines fitted for candidates whose core was found lower
 #: (see :func:`analyse_blobs`).
 ALT_CORE_LEVELS: tuple[float, ...] = (0.75, 0.9)
@@ -228,8 +227,13 @@ class _Context:
 
     def noise_of(self, k: np.ndarray) -> np.ndarray:
         """Pixel noise (grey levels) of pyramid levels ``k`` (int (N,)) -> float64 (N,)."""
-        u, inv = np.unique(k, return_inverse=True)
-        return np.array([self.level_noise(int(v)) for v in u])[inv.ravel()]
+        k = np.asarray(k, np.int64)
+        if len(k) == 0:
+            return np.zeros(0)
+        per_level = np.zeros(int(k.max()) + 1)
+        for v in np.flatnonzero(np.bincount(k)):
+            per_level[v] = self.level_noise(int(v))
+        return per_level[k]
 
     def level_mask(self, k: int) -> np.ndarray | None:
         if self.mask is None:
@@ -291,7 +295,7 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
     weber = rt.contrast(0.5) / np.maximum(rt.background(), 1.0)
     ring_ok = (c75 >= RING_MIN_CNR * rt.noise) & (weber >= RING_MIN_WEBER)
     cand, c75, weber = cand.subset(ring_ok), c75[ring_ok], weber[ring_ok]
-    rep, px, py, ref, rep_radius = _representatives(ctx, cand, c75)
+    rep, px, py, ref, rep_radius = representatives(pyr, ctx.noise_of, cand, c75)
     cand, weber = cand.subset(rep), weber[rep]
 
     n = len(cand)
@@ -398,87 +402,20 @@ def _reference_level(image: np.ndarray) -> float:
     return max(v, 8.0)
 
 
-def _representatives(ctx: _Context, cand: Candidates, c75: np.ndarray
-                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """One candidate per blob top.
-
-    Every candidate climbs to its peak on its refinement level; candidates that reach the
-    same peak pixel are one group. The representative is the smallest-scale member
-    whose ring contrast is at least 0.8 of the group's best (a scale much smaller than the
-    blob has its ring inside it and little contrast; a much bigger one dilutes its centre).
-    Representatives whose peaks are very close (one plateau) are then merged.
-
-    Returns the representatives' indices, their peak pixels ``px, py``, level and radius
-    estimate (full-resolution px).
-    """
-    n = len(cand)
-    if n == 0:
-        z = np.zeros(0, np.int64)
-        return z, z, z, z, np.zeros(0)
-    ref = np.minimum(refine_level(cand.radius), len(ctx.pyr) - 1)
-    px = np.zeros(n, np.int64)
-    py = np.zeros(n, np.int64)
-    top = np.zeros(n)
-    for k in np.unique(ref):
-        sel = np.flatnonzero(ref == k)
-        sh = cand.level[sel] - k
-        x = np.where(sh >= 0, cand.x[sel] << np.maximum(sh, 0), cand.x[sel] >> np.maximum(-sh, 0))
-        y = np.where(sh >= 0, cand.y[sel] << np.maximum(sh, 0), cand.y[sel] >> np.maximum(-sh, 0))
-        px[sel], py[sel], top[sel] = climb(ctx.pyr[int(k)], x, y)
-    # Same refinement level and same peak pixel: one group.
-    key = (ref * (1 << 20) + py) * (1 << 20) + px
-    _, label = np.unique(key, return_inverse=True)
-    best = np.zeros(label.max() + 1)
-    np.maximum.at(best, label, c75)
-    eligible = c75 >= 0.8 * best[label]
-    # Smallest radius among the eligible members of each group (ties: highest contrast).
-    order = np.lexsort((-c75, cand.radius, ~eligible, label))
-    first = np.ones(n, bool)
-    first[1:] = label[order][1:] != label[order][:-1]
-    rep = np.sort(order[first])
-    # Peaks of one plateau (a flat or clipped dot top, noise): representatives whose peaks
-    # are closer than half the smaller radius (at least 2 px) are one blob; the one on the
-    # higher top stays (a dot on a band is above the band's own peaks); when the tops are
-    # equal within the noise (one plateau) it takes the better scale estimate.
-    radius = cand.radius.copy()
-    if len(rep) > 1 and _MERGE_PLATEAUS:
-        from scipy.spatial import cKDTree
-
-        s = 2.0 ** ref[rep]
-        pts = np.stack([px[rep] * s, py[rep] * s], axis=1)
-        lim = np.maximum(2.0, 0.5 * cand.radius[rep])
-        pairs = cKDTree(pts).query_pairs(r=float(lim.max()), output_type="ndarray")
-        if len(pairs):
-            i, j = pairs[:, 0], pairs[:, 1]
-            ri, rj = cand.radius[rep[i]], cand.radius[rep[j]]
-            close = (np.linalg.norm(pts[i] - pts[j], axis=1) <= np.minimum(lim[i], lim[j])) & \
-                (np.maximum(ri, rj) <= 1.7 * np.minimum(ri, rj))
-            i, j = i[close], j[close]
-            win_i = top[rep[i]] >= top[rep[j]]
-            loser, winner = np.where(win_i, j, i), np.where(win_i, i, j)
-            # On one plateau (tops equal within the noise) the better scale estimate (higher
-            # ring contrast) gives the radius.
-            tol = 4.0 * ctx.noise_of(ref[rep[winner]]) / 3.0 + 2.0
-            same = (top[rep[winner]] - top[rep[loser]] <= tol) & (c75[rep[loser]] > c75[rep[winner]])
-            radius[rep[winner[same]]] = cand.radius[rep[loser[same]]]
-            keep = np.ones(len(rep), bool)
-            keep[loser] = False
-            rep = rep[keep]
-    return rep, px[rep], py[rep], ref[rep], radius[rep]
-
-
 def _fit(ctx: _Context, sel: np.ndarray, px: np.ndarray, py: np.ndarray, level: np.ndarray,
          radius: np.ndarray, out: dict[str, np.ndarray], ok: np.ndarray) -> np.ndarray:
     """Fit blobs ``sel`` centred on pixels ``px, py`` of pyramid ``level`` with full-resolution
-    radius estimates ``radius``, writing into ``out``/``ok``. The level search runs in one
-    stack per patch size (whatever their level), the outlines in one batch per crop size
-    (:func:`~carapost.core.blob_outline.fit_outline_parts`); the level searches are kept in
-    ``ctx`` for the alternative outlines (:func:`_fit_alternatives`). Returns ``border
-    (len(sel),)``."""
-    border = np.zeros(len(sel), bool)
+    radius estimates ``radius``, writing into ``out``/``ok``. One patch stack per patch size
+    (whatever their level), each step over all stacks before the next: the ring step of
+    every stack, one pre-gate, the level step of every stack, one gate, the outlines
+    (:func:`~carapost.core.blob_outline.outline_tables`), one store. The level searches are
+    kept in ``ctx`` for the alternative outlines (:func:`_fit_alternatives`). Returns
+    ``border (len(sel),)``."""
     r_lv = radius / 2.0 ** level
     half = patch_half_size(r_lv)
-    searches = []
+    noise = ctx.noise_of(level)
+    # 1. Ring background and peak, per stack.
+    stacks = []                                       # (positions in sel, RingSearch)
     for h in np.unique(half):
         h = int(h)
         groups = [np.flatnonzero((half == h) & (level == k)) for k in np.unique(level[half == h])]
@@ -487,49 +424,59 @@ def _fit(ctx: _Context, sel: np.ndarray, px: np.ndarray, py: np.ndarray, level: 
                                               bad=ctx.level_mask(int(level[g[0]])),
                                               saturated=_saturation(int(level[g[0]])) if ctx.polarity > 0 else None)
                               for g in groups])
+        stacks.append((loc, ring_search(pat, r_lv[loc])))
+    # The pre-gate (before step 2), over the patches with a peak of all stacks at once:
+    # candidates whose pre-score is too low for the outline to make them probable are not
+    # fitted further (rejected).
+    gos: list = [None] * len(stacks)
+    if ctx.gate > 0 and ctx.pre_gate > 0:
+        pos = np.concatenate([loc[rs.alive] for loc, rs in stacks])
+        if len(pos):
+            gf = _gate_features(ctx, sel[pos], level[pos], noise[pos], r_lv[pos],
+                                np.concatenate([rs.peak[rs.alive] for _, rs in stacks]),
+                                np.concatenate([rs.sig0[rs.alive] for _, rs in stacks]),
+                                np.concatenate([rs.c0[rs.alive, 0] for _, rs in stacks]))
+            go = blob_score.pre_gate_probability(gf) >= ctx.pre_gate
+            gos = np.split(go, np.cumsum([len(rs.alive) for _, rs in stacks])[:-1])
+    # 2. Level search, per stack.
+    searches = []                                     # (positions in sel, LevelSearch)
+    for (loc, rs), go in zip(stacks, gos):
         k = level[loc]
-        noise = ctx.noise_of(k)
-        idx = sel[loc]
-        pre = _pre_gate(ctx, idx, k, noise, r_lv[loc]) if ctx.gate > 0 and ctx.pre_gate > 0 else None
-        st = search_levels(pat, r_lv[loc], max_radius=ctx.max_radius / 2.0 ** k, pixel_noise=noise, pre_gate=pre)
-        # The pre-gate (before step 2) and the gate (after it): candidates whose pre-score is
-        # too low for the outline to make them probable are not fitted further (rejected).
-        ctx.gated[idx[st.pregated]] = True
-        live = st.alive[st.has]
-        a = st.alive
-        gf = _gate_features(ctx, idx[a], k[a], noise[a], r_lv[loc][a], st.peak, st.sig0, st.c0[:, 0],
-                            np.asarray(LEVELS)[st.k_found], st.area[np.arange(len(a)), st.k_found] * 4.0 ** k[a],
-                            st.fill)
-        ctx.gate_feat[idx[a]] = gf
-        go = live
-        if ctx.gate > 0 and len(live):
-            pg = blob_score.gate_probability(gf[st.has])
-            go = live[pg >= ctx.gate]
-            ctx.gated[idx[live]] = pg < ctx.gate
-        searches.append((st, loc, k, noise, go))
-    tables = outline_tables([(st, go, np.zeros(len(go))) for st, _, _, _, go in searches], polarity=ctx.polarity)
-    for (st, loc, k, noise, go), (keep, tab, ok_go, _) in zip(searches, tables):
-        idx = sel[loc]
-        fit = _Table(len(loc))
-        fit.put(go[keep], tab, ok_go)
-        fit.border[st.alive] = ~st.has
-        _store(out, ok, idx, fit, px[loc], py[loc], k, noise, ctx.polarity)
-        ctx.state[idx] = len(ctx.searches)
-        ctx.row[idx] = np.arange(len(loc))
-        ctx.px[idx], ctx.py[idx], ctx.level[idx] = px[loc], py[loc], k
+        st = level_search(rs, go, max_radius=ctx.max_radius / 2.0 ** k, pixel_noise=noise[loc])
+        ctx.gated[sel[loc[st.pregated]]] = True
+        searches.append((loc, st))
+    # The gate (after step 2), over all stacks at once.
+    pos = np.concatenate([loc[st.alive] for loc, st in searches])
+    has = np.concatenate([st.has for _, st in searches])
+    gf = _gate_features(ctx, sel[pos], level[pos], noise[pos], r_lv[pos],
+                        np.concatenate([st.peak for _, st in searches]),
+                        np.concatenate([st.sig0 for _, st in searches]),
+                        np.concatenate([st.c0[:, 0] for _, st in searches]),
+                        np.asarray(LEVELS)[np.concatenate([st.k_found for _, st in searches])],
+                        np.concatenate([st.area[np.arange(len(st.alive)), st.k_found] for _, st in searches])
+                        * 4.0 ** level[pos],
+                        np.concatenate([st.fill for _, st in searches]))
+    ctx.gate_feat[sel[pos]] = gf
+    go = has
+    if ctx.gate > 0 and has.any():
+        pg = blob_score.gate_probability(gf[has])
+        go = has.copy()
+        go[has] = pg >= ctx.gate
+        ctx.gated[sel[pos[has]]] = pg < ctx.gate
+    # 3-6. Outlines of the candidates that passed, then one store.
+    ends = np.cumsum([len(st.alive) for _, st in searches])[:-1]
+    gos = [st.alive[g] for (_, st), g in zip(searches, np.split(go, ends))]
+    tables = outline_tables([(st, g, np.zeros(len(g))) for (_, st), g in zip(searches, gos)], polarity=ctx.polarity)
+    fit = _Table(len(sel))
+    for (loc, st), g, (keep, tab, ok_go, _) in zip(searches, gos, tables):
+        fit.put(loc[g[keep]], tab, ok_go)
+        fit.border[loc[st.alive]] = ~st.has
+        ctx.state[sel[loc]] = len(ctx.searches)
+        ctx.row[sel[loc]] = np.arange(len(loc))
         ctx.searches.append(st)
-        border[loc] = fit.border
-    return border
-
-
-def _pre_gate(ctx: _Context, idx: np.ndarray, k: np.ndarray, noise: np.ndarray, r_lv: np.ndarray):
-    """The pre-gate of a stack of patches (candidates ``idx`` on levels ``k``, ...), for
-    :func:`~carapost.core.blob_fit.search_levels`: which of the patches with a peak go on to
-    the level search."""
-    def go(alive: np.ndarray, peak: np.ndarray, ring_noise: np.ndarray, plane: np.ndarray) -> np.ndarray:
-        gf = _gate_features(ctx, idx[alive], k[alive], noise[alive], r_lv[alive], peak, ring_noise, plane[:, 0])
-        return blob_score.pre_gate_probability(gf) >= ctx.pre_gate
-    return go
+    _store(out, ok, sel, fit, px, py, level, noise, ctx.polarity)
+    ctx.px[sel], ctx.py[sel], ctx.level[sel] = px, py, level
+    return fit.border
 
 
 def _gate_features(ctx: _Context, idx: np.ndarray, k: np.ndarray, noise: np.ndarray, r_lv: np.ndarray,

@@ -136,9 +136,8 @@ def test_ring_and_level_steps_equal_numpy(half):
     max_radius = np.full(n, 0.8 * half)
     pixel_noise = rng.uniform(0.5, 4.0, n)
     ref = _search_levels_numpy(pu, bad, sat, radius, half, max_radius, pixel_noise)
-    d0, ds, sig0, n0, c0, pk, peak = K.ring_step(pu, bad, sat, radius, half)
+    d0, sig0, n0, c0, pk, peak = K.ring_step(pu, bad, sat, radius, half)
     np.testing.assert_allclose(d0, ref["d0"], atol=2e-3)
-    np.testing.assert_allclose(ds, ref["ds"], atol=2e-3)
     np.testing.assert_allclose(sig0, ref["sig0"], rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(c0, ref["c0"], rtol=1e-5, atol=1e-4)
     assert np.array_equal(n0, ref["n0"]) and np.array_equal(pk, ref["pk"])
@@ -146,7 +145,7 @@ def test_ring_and_level_steps_equal_numpy(half):
     ok = (peak > sig0) & (peak > 0.5)
     assert ok.sum() > 0.8 * n
     a = np.flatnonzero(ok)
-    lvl, L, area, fill, edge_max, valid, k_found, has = K.level_step(ds[a], peak[a], pk[a], half, max_radius[a],
+    lvl, L, area, fill, edge_max, valid, k_found, has = K.level_step(d0[a], peak[a], pk[a], half, max_radius[a],
                                                                      pixel_noise[a])
     # The fixed-point levels may differ by one where float rounding crosses an integer.
     assert np.abs(lvl.astype(int) - ref["lvl"][a]).max() <= 1
@@ -165,11 +164,12 @@ def test_flood_kernel_is_the_exact_reconstruction():
     rng = np.random.default_rng(3)
     n, half = 60, 14
     s = 2 * half + 1
-    ds = cv2.GaussianBlur(rng.normal(0, 1, (n * s, s)).astype(np.float32), (0, 0), 1.2).reshape(n, s, s)
-    ds = 60 + 200 * ds / np.abs(ds).max(axis=(1, 2), keepdims=True)
-    pk = np.argmax(ds.reshape(n, -1), axis=1)
-    peak = ds.reshape(n, -1)[np.arange(n), pk].astype(np.float64)
-    lvl, L = K.level_step(ds.astype(np.float32), peak, pk, half, np.full(n, 50.0), np.full(n, 1.0))[:2]
+    d0 = cv2.GaussianBlur(rng.normal(0, 1, (n * s, s)).astype(np.float32), (0, 0), 1.2).reshape(n, s, s)
+    d0 = 60 + 200 * d0 / np.abs(d0).max(axis=(1, 2), keepdims=True)
+    pk = np.argmax(d0.reshape(n, -1), axis=1)
+    peak = d0.reshape(n, -1)[np.arange(n), pk].astype(np.float64)
+    # (level_step floods the 3x3 mean of d0, returned as lvl: the reference floods that too)
+    lvl, L = K.level_step(d0.astype(np.float32), peak, pk, half, np.full(n, 50.0), np.full(n, 1.0))[:2]
     ref = _flood(lvl, pk // s, pk % s, 10 * s, 99)
     assert np.array_equal(L, ref)
     assert (L > 99).sum() > 20 * n
@@ -285,3 +285,61 @@ def test_local_maxima_kernel_equals_dilation():
             assert np.array_equal(got, ref)
             total += len(ref)
     assert total > 1000
+
+
+def test_ring_samples_kernel_equals_numpy():
+    """The candidates' ring test with the compiled ring (``ring_samples``: samples, clipping at
+    the image border, a sorting network) gives what numpy indexing and sorting give, on the candidates
+    of a rendered frame's pyramid levels (both polarities; also moved to the image's corner)."""
+    from carapost.core import blob_candidates as BC
+    from carapost.core.blobs import CANDIDATE_MIN_SNR, CANDIDATE_MIN_WEBER
+
+    for n in (12, 5, 8):                          # the sorting networks, on every 0/1 input
+        bits = (np.arange(1 << n)[:, None] >> np.arange(n)[None]) & 1
+        for a, b in KD.sorting_network(n):
+            bits[:, a], bits[:, b] = np.minimum(bits[:, a], bits[:, b]), np.maximum(bits[:, a], bits[:, b])
+        assert (np.diff(bits, axis=1) >= 0).all()
+    fr = render_frame(RenderConfig(texture=0.12, size=(240, 320), n_dots=40, polarity="both"), seed=3)
+    total = 0
+    for pol in (BLACK, WHITE):
+        sig = signed_image(fr.image, pol)
+        scales = BC.detection_scales(1.5, 14.0)
+        pyr = BC.pyramid(sig, max(scales) + 1)
+        levels = [BC.responses(pyr[k], k, sides) for k, sides in scales.items() if k < len(pyr)]
+        cand = BC.find_candidates(levels, min_snr=CANDIDATE_MIN_SNR, polarity=pol, min_weber=CANDIDATE_MIN_WEBER)
+        # ... and every candidate moved next to the image's corners (rings clipped there).
+        edge = cand.subset(np.arange(len(cand)))
+        h = np.array([pyr[k].shape[0] for k in edge.level])
+        edge.x, edge.y = edge.x % 3, h - 1 - edge.y % 3
+        for c in (cand, edge):
+            a = BC.ring_test(pyr, levels, c, {}, pol)
+            b = BC.ring_test(pyr, levels, c, {}, pol, compiled=False)
+            assert np.array_equal(a.ring, b.ring) and np.array_equal(a.centre, b.centre)
+        total += len(cand)
+    assert total > 150
+
+
+def test_context_points_kernel_equals_numpy():
+    """The context ring with the compiled sample points (``context_points``) gives the numpy
+    version's features, on the fits of a rendered frame (both polarities) with rows of NaN or
+    infinite centres, NaN axes or angles and centres far outside the image added."""
+    from carapost.core.blob_context import context_ring
+    from carapost.core.blobs import analyse_blobs
+
+    fr = render_frame(RenderConfig(texture=0.12, size=(240, 320), n_dots=40, polarity="both"), seed=4)
+    for pol in (BLACK, WHITE):
+        an = analyse_blobs(fr.image, pol, min_radius=1.5, max_radius=14.0)
+        m = {k: np.asarray(an.measures[k], float).copy() for k in ("x", "y", "major", "minor", "angle",
+                                                                     "background", "contrast")}
+        assert len(m["x"]) > 30
+        odd = {"x": [np.nan, np.inf, -1e6, 5.0], "y": [3.0, -np.inf, 1e6, np.nan],
+               "major": [2.0, np.nan, 1e6, 3.0], "minor": [1.0, 2.0, 3.0, np.nan],
+               "angle": [0.3, np.nan, 1.0, -2.0], "background": [100.0] * 4, "contrast": [30.0] * 4}
+        for k in m:
+            m[k] = np.concatenate([m[k], odd[k]])
+        ctx = cv2.blur(signed_image(fr.image, pol), (3, 3))
+        a, b = dict(m), dict(m)
+        context_ring(ctx, a, pol)
+        context_ring(ctx, b, pol, compiled=False)
+        for k in ("ctx_max", "ctx_mean", "ctx_line", "ctx_inner"):
+            assert np.array_equal(a[k], b[k], equal_nan=True), k

@@ -499,14 +499,14 @@ def test_pre_gate_rejects_before_the_level_search(monkeypatch):
     assert blob_score.pre_gate_threshold() > 0
     fr = render_frame(RenderConfig(texture=0.15, size=(480, 640), n_dots=60, polarity="both"), seed=12)
     searched = []
-    orig = blob_fit.search_levels
+    orig = blob_fit.level_search
 
-    def counting(pat, *a, **kw):
-        st = orig(pat, *a, **kw)
+    def counting(ring, *a, **kw):
+        st = orig(ring, *a, **kw)
         searched.append((len(st.alive), len(st.pregated)))
         return st
 
-    monkeypatch.setattr("carapost.core.blobs.search_levels", counting)
+    monkeypatch.setattr("carapost.core.blobs.level_search", counting)
     n_pre = 0
     for pol in (BLACK, WHITE):
         searched.clear()
