@@ -397,6 +397,17 @@ def _patch_step(img, cx, cy, half, mask, sat_lo, sat_hi, pu, bad, sat):
     s = 2 * half + 1
     has_mask = mask.shape[0] > 0
     for k in range(n):
+        y0, x0 = cy[k] - half, cx[k] - half
+        if not has_mask and y0 >= 0 and x0 >= 0 and y0 + s <= H and x0 + s <= W:
+            # Inside the image, no mask: row copies (nothing clamped, nothing bad).
+            for i in range(s):
+                src, pk, bk, sk = img[y0 + i, x0:x0 + s], pu[k, i], bad[k, i], sat[k, i]
+                for j in range(s):
+                    v = src[j]
+                    pk[j] = v
+                    bk[j] = False
+                    sk[j] = v >= sat_lo and v <= sat_hi
+            continue
         for i in range(s):
             y = cy[k] + i - half
             yc = min(max(y, 0), H - 1)

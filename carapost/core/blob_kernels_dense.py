@@ -120,26 +120,36 @@ def _local_maxima(m, r, thr, out):
 
 
 def laplacian_histograms(img: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`_laplacian_histograms` (see there): returns ``(keep, every)``."""
-    keep, every = np.zeros(1021, np.int64), np.zeros(1021, np.int64)
-    _laplacian_histograms(img, keep, every)
-    return keep, every
+    """:func:`_laplacian_histograms` (see there): returns ``(keep, every)``, int64 (1021,)
+    each: the histograms over the informative centres and over all of them."""
+    hist = np.zeros((2 * _LAP_COPIES, 1021), np.int64)
+    _laplacian_histograms(img, hist)
+    keep = hist[1::2].sum(axis=0)
+    return keep, keep + hist[0::2].sum(axis=0)
+
+
+#: Copies (a power of two) of the Laplacian histograms that consecutive samples count into in turn (summed
+#: afterwards): neighbouring samples mostly fall into the same few bins, and one copy would
+#: make each count wait for the previous one's store.
+_LAP_COPIES = 4
 
 
 @nb.njit(**_JIT)
-def _laplacian_histograms(img, keep, every):
-    """Histograms (int64 (1021,)) of the absolute 4-neighbour Laplacian of ``img`` (uint8
-    (H, W)) on every third pixel from ``(1, 1)`` (the samples of
-    :func:`carapost.core.blob_candidates.pixel_noise`), added to ``keep`` over the informative
-    centres (neither black nor clipped) and to ``every`` over all of them."""
+def _laplacian_histograms(img, hist):
+    """Histograms of the absolute 4-neighbour Laplacian of ``img`` (uint8 (H, W)) on every
+    third pixel from ``(1, 1)`` (the samples of
+    :func:`carapost.core.blob_candidates.pixel_noise`), added to ``hist`` int64 (2 C, 1021):
+    row ``2 s + 1`` over the informative centres (neither black nor clipped), row ``2 s``
+    over the others, the ``C`` copies ``s`` taken in turn along each row of samples."""
     H, W = img.shape
+    mask = hist.shape[0] - 2                     # C a power of two: s = 0, 2, .., 2 C - 2
     for i in range(1, H - 1, 3):
+        s = 0
         for j in range(1, W - 1, 3):
             c = int(img[i, j])
             v = abs(4 * c - int(img[i - 1, j]) - int(img[i + 1, j]) - int(img[i, j - 1]) - int(img[i, j + 1]))
-            every[v] += 1
-            if FLAT_LO < c < FLAT_HI:
-                keep[v] += 1
+            hist[s + (FLAT_LO < c < FLAT_HI), v] += 1
+            s = (s + 2) & mask
 
 
 #: A sorting network of 12 inputs (39 compare-exchanges in 9 layers; checked on every 0/1

@@ -302,7 +302,8 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
     ref_level = _reference_level(image)
     ctx.start(n, cand.snr, weber, ref_level, blob_score.gate_threshold() if gate else 0.0,
               blob_score.pre_gate_threshold() if gate else 0.0)
-    out = {k: np.zeros(n) for k in _MEASURES}
+    block = np.zeros((len(_MEASURES), n))             # the measures' rows, written by _store at once
+    out = dict(zip(_MEASURES, block))
     out["ring_weber"] = weber.astype(float)
     ok = np.zeros(n, bool)
     if n:
@@ -317,7 +318,7 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
             if len(sel) == 0 and len(refit) == 0:
                 break
             both = np.concatenate([sel, refit])
-            border = _fit(ctx, both, px[both], py[both], level[both], radius[both], out, ok)[:len(sel)]
+            border = _fit(ctx, both, px[both], py[both], level[both], radius[both], block, ok)[:len(sel)]
             retry = sel[border & (radius[sel] * 2 <= max_radius * 1.6)]
             refit = _finer(out, ok, sel[~border], level, px, py, radius)
             radius[retry] *= 2.0
@@ -328,7 +329,7 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
             level[retry] = new_level
             sel = retry
         if len(refit):
-            _fit(ctx, refit, px[refit], py[refit], level[refit], radius[refit], out, ok)
+            _fit(ctx, refit, px[refit], py[refit], level[refit], radius[refit], block, ok)
     ctx_img = cv2.blur(signed, (3, 3))
     score, ok_s, feat = _score(cand, out, ok, min_radius, max_radius, ctx_img, polarity, ref_level)
     if n and ALT_CORE_LEVELS:
@@ -342,9 +343,11 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
         rows = np.concatenate(reqs)
         if len(rows):
             mc = np.concatenate([np.full(len(r), lv) for r, lv in zip(reqs, ALT_CORE_LEVELS)])
-            out2 = {k: v[rows].copy() for k, v in out.items()}
+            block2 = block[:, rows]
+            out2 = dict(zip(_MEASURES, block2))
+            out2.update((k, v[rows]) for k, v in out.items() if k not in out2)
             ok2 = np.zeros(len(rows), bool)
-            _fit_alternatives(ctx, rows, mc, out2, ok2)
+            _fit_alternatives(ctx, rows, mc, block2, ok2)
             score2, ok2_s, feat2 = _score(cand.subset(rows), out2, ok2, min_radius, max_radius, ctx_img, polarity,
                                           ref_level)
             off = 0
@@ -354,8 +357,10 @@ def analyse_blobs(image: np.ndarray, polarity: int, *, min_radius: float, max_ra
                 take = ((out["core_level"][alt] < lv_alt - 1e-9) & (score[alt] < _ALT_BELOW)
                         & ok2_s[j] & (score2[j] > score[alt]))
                 better, j = alt[take], j[take]
+                block[:, better] = block2[:, j]
                 for k in out:
-                    out[k][better] = out2[k][j]
+                    if k not in _MEASURE_ROW:
+                        out[k][better] = out2[k][j]
                 ok[better], ok_s[better], score[better], feat[better] = ok2[j], True, score2[j], feat2[j]
     ok = ok_s
     ok &= unique_detections(out, score, ok)
@@ -403,9 +408,10 @@ def _reference_level(image: np.ndarray) -> float:
 
 
 def _fit(ctx: _Context, sel: np.ndarray, px: np.ndarray, py: np.ndarray, level: np.ndarray,
-         radius: np.ndarray, out: dict[str, np.ndarray], ok: np.ndarray) -> np.ndarray:
+         radius: np.ndarray, block: np.ndarray, ok: np.ndarray) -> np.ndarray:
     """Fit blobs ``sel`` centred on pixels ``px, py`` of pyramid ``level`` with full-resolution
-    radius estimates ``radius``, writing into ``out``/``ok``. One patch stack per patch size
+    radius estimates ``radius``, writing into ``block`` (the measures' rows, see
+    :func:`_store`)/``ok``. One patch stack per patch size
     (whatever their level), each step over all stacks before the next: the ring step of
     every stack, one pre-gate, the level step of every stack, one gate, the outlines
     (:func:`~carapost.core.blob_outline.outline_tables`), one store. The level searches are
@@ -474,7 +480,7 @@ def _fit(ctx: _Context, sel: np.ndarray, px: np.ndarray, py: np.ndarray, level: 
         ctx.state[sel[loc]] = len(ctx.searches)
         ctx.row[sel[loc]] = np.arange(len(loc))
         ctx.searches.append(st)
-    _store(out, ok, sel, fit, px, py, level, noise, ctx.polarity)
+    _store(block, ok, sel, fit, px, py, level, noise, ctx.polarity)
     ctx.px[sel], ctx.py[sel], ctx.level[sel] = px, py, level
     return fit.border
 
@@ -522,40 +528,50 @@ class _Table:
 
 
 _COLUMN = {name: i for i, name in enumerate(OUTPUT_FIELDS)}
-#: Outline outputs stored as they are (``_store``), and their columns.
-_PLAIN = ("rise", "noise", "ring_noise", "core_level", "found_level", "area_ratio", "asymmetry", "profile_rms",
-          "open", "kept", "saturated")
-_PLAIN_COLUMNS = np.array([_COLUMN[name] for name in _PLAIN])
+_MEASURE_ROW = {name: i for i, name in enumerate(_MEASURES)}
+#: The measures are the outline outputs in their order (``shape`` is ``shape_residual``) with
+#: ``pixel_noise``, ``level`` and ``border`` inserted before ``open, kept, saturated``.
+_N_HEAD = _MEASURES.index("pixel_noise")
+assert (_MEASURES[:_N_HEAD] == tuple("shape" if f == "shape_residual" else f for f in OUTPUT_FIELDS[:_N_HEAD])
+        and _MEASURES[_N_HEAD:_N_HEAD + 3] == ("pixel_noise", "level", "border")
+        and _MEASURES[_N_HEAD + 3:] == OUTPUT_FIELDS[_N_HEAD:])
 
 
-def _store(out: dict[str, np.ndarray], ok: np.ndarray, idx: np.ndarray, fit: "_Table", px: np.ndarray,
+def _store(block: np.ndarray, ok: np.ndarray, idx: np.ndarray, fit: "_Table", px: np.ndarray,
            py: np.ndarray, k: np.ndarray, noise: np.ndarray, polarity: int) -> None:
     """Write the outlines ``fit`` (centres relative to patch centres ``px, py`` of levels
-    ``k``) into rows ``idx`` of ``out``/``ok`` in full-resolution px."""
+    ``k``) into columns ``idx`` of ``block`` float64 (len(_MEASURES), N) (the rows of the
+    measures :data:`_MEASURES`) and ``ok`` (N,), in full-resolution px: one assignment of a
+    ``(len(_MEASURES), len(idx))`` block."""
     s = 2.0 ** k
-    out["x"][idx] = (px + fit.x) * s
-    out["y"][idx] = (py + fit.y) * s
-    out["major"][idx] = fit.major * s
-    out["minor"][idx] = fit.minor * s
-    out["angle"][idx] = fit.angle
-    out["contrast"][idx] = fit.contrast
+    h = _N_HEAD
+    v = np.empty((len(_MEASURES), len(idx)))
+    v[:h] = fit.cols[:h]
+    v[h] = noise
+    v[h + 1] = k
+    v[h + 2] = fit.border
+    v[h + 3:] = fit.cols[h:]
+    v[_X] += px
+    v[_Y] += py
+    v[_X:_MINOR + 1] *= s                             # x, y, major, minor
     # Background level in the original image's grey levels (the level image is signed).
-    out["background"][idx] = fit.background if polarity > 0 else 255.0 - fit.background
-    for name, col in zip(_PLAIN, fit.cols[_PLAIN_COLUMNS]):
-        out[name][idx] = col
-    out["shape"][idx] = fit.shape_residual
-    out["area"][idx] = fit.area * s * s
-    out["pixel_noise"][idx] = noise
-    out["level"][idx] = k
-    out["border"][idx] = fit.border
+    if polarity <= 0:
+        np.subtract(255.0, v[_BACKGROUND], out=v[_BACKGROUND])
+    v[_AREA] *= s                                     # area: (area s) s
+    v[_AREA] *= s
+    block[:, idx] = v
     ok[idx] = fit.ok
 
 
-def _fit_alternatives(ctx: _Context, cands: np.ndarray, min_core: np.ndarray, out: dict[str, np.ndarray],
+_X, _Y, _MINOR, _BACKGROUND, _AREA = (_MEASURE_ROW[k] for k in ("x", "y", "minor", "background", "area"))
+assert _Y == _X + 1 and _MEASURES[_X:_MINOR + 1] == ("x", "y", "major", "minor")
+
+
+def _fit_alternatives(ctx: _Context, cands: np.ndarray, min_core: np.ndarray, block: np.ndarray,
                       ok: np.ndarray) -> None:
     """Outlines of candidates ``cands`` (repeats allowed) with their core forced to at least
     ``min_core``, from their latest level search (no refitting of steps 1-2), into rows
-    ``0..len(cands)-1`` of ``out``/``ok``."""
+    ``0..len(cands)-1`` of ``block`` (the measures' rows, see :func:`_store`)/``ok``."""
     st_id = ctx.state[cands]
     parts, order = [], []
     for sid in np.unique(st_id[st_id >= 0]):
@@ -568,7 +584,7 @@ def _fit_alternatives(ctx: _Context, cands: np.ndarray, min_core: np.ndarray, ou
         fit.border[keep] = border
         c = cands[m]
         k = ctx.level[c]
-        _store(out, ok, m, fit, ctx.px[c], ctx.py[c], k, ctx.noise_of(k), ctx.polarity)
+        _store(block, ok, m, fit, ctx.px[c], ctx.py[c], k, ctx.noise_of(k), ctx.polarity)
 
 
 def _score(cand, out: dict[str, np.ndarray], ok: np.ndarray, min_radius: float, max_radius: float,

@@ -212,13 +212,15 @@ def test_outline_kernel_equals_numpy(polarity):
 
 
 def test_patch_and_climb_kernels_equal_numpy():
-    """Patch extraction (clamped at the image border, a mask, saturated values) and the uphill
+    """Patch extraction (inside the image, clamped at its border, a mask, saturated values) and the uphill
     climb of the candidate grouping give what their numpy versions give."""
     rng = np.random.default_rng(4)
     img = cv2.GaussianBlur(rng.integers(0, 256, (120, 160)).astype(np.uint8), (0, 0), 2.0)
     img[40:50, 60:75] = 255
     mask = rng.random(img.shape) < 0.05
     cx, cy = rng.integers(0, 160, 400), rng.integers(0, 120, 400)
+    inside = (cx >= 11) & (cx < 160 - 11) & (cy >= 11) & (cy < 120 - 11)
+    assert 50 < inside.sum() < 350                    # the kernel's row-copy path and its clamped one
     for bad in (None, mask):
         for sat in (None, (250, 255)):
             a = extract_patches(img, cx, cy, 11, bad=bad, saturated=sat)
@@ -285,6 +287,37 @@ def test_local_maxima_kernel_equals_dilation():
             assert np.array_equal(got, ref)
             total += len(ref)
     assert total > 1000
+
+
+def test_laplacian_histograms_kernel_equals_numpy():
+    """The pixel noise's Laplacian histograms (``laplacian_histograms``, counted into
+    interleaved copies) equal numpy's counts of the absolute Laplacian on every third pixel,
+    over the informative centres and over all; ``pixel_noise`` equals its partition
+    version — on noise, on clipped and black regions, on 3-40 px images and on a frame."""
+    from carapost.core.blob_candidates import informative, pixel_noise
+
+    rng = np.random.default_rng(12)
+    imgs = [render_frame(RenderConfig(texture=0.12, size=(240, 320), n_dots=40), seed=4).image]
+    for t in range(20):
+        h, w = (int(v) for v in rng.integers(3, 40, 2)) if t % 3 == 0 else (int(rng.integers(60, 200)), 173 + t)
+        img = rng.integers(0, 256, (h, w)) if t % 2 else rng.normal(128.0, 1.0 + 10 * t, (h, w))
+        img = np.clip(img, 0, 255).astype(np.uint8)
+        if t % 4 == 1:
+            img[: h // 2] = 255
+            img[:, : w // 3] = 0
+        imgs.append(img)
+    for img in imgs:
+        a = img.astype(np.int64)
+        c = a[1:-1:3, 1:-1:3]
+        lap = np.abs(4 * c - a[:-2:3, 1:-1:3][:c.shape[0], :c.shape[1]] - a[2::3, 1:-1:3][:c.shape[0], :c.shape[1]]
+                     - a[1:-1:3, :-2:3][:c.shape[0], :c.shape[1]] - a[1:-1:3, 2::3][:c.shape[0], :c.shape[1]])
+        inf = informative(img[1:-1:3, 1:-1:3])
+        keep, every = KD.laplacian_histograms(img)
+        assert keep.dtype == every.dtype == np.int64
+        assert np.array_equal(keep, np.bincount(lap[inf], minlength=1021))
+        assert np.array_equal(every, np.bincount(lap.ravel(), minlength=1021))
+        if min(img.shape) >= 8:
+            assert pixel_noise(img) == pixel_noise(img, compiled=False)
 
 
 def test_ring_samples_kernel_equals_numpy():
