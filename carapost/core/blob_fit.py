@@ -372,7 +372,6 @@ class RingSearch:
     patches of the stack."""
 
     pat: Patches
-    radius: np.ndarray       # float (N,): radius estimates (level px)
     d0: np.ndarray           # float32 (N, S, S): patch minus ring plane
     sig0: np.ndarray         # (N,) ring residual std
     c0: np.ndarray           # float32 (N, 3) ring plane
@@ -388,7 +387,7 @@ def ring_search(pat: Patches, radius: np.ndarray) -> RingSearch:
     d0, sig0, n0, c0, pk, peak = blob_kernels.ring_step(pat.pu, pat.bad, pat.sat, np.asarray(radius, np.float32),
                                                        pat.half)
     alive = np.flatnonzero((peak > 1.0 * sig0) & (peak > 0.5) & (n0 >= 8))
-    return RingSearch(pat, radius, d0, sig0, c0, pk, peak, alive)
+    return RingSearch(pat, d0, sig0, c0, pk, peak, alive)
 
 
 def level_search(ring: RingSearch, go: np.ndarray | None = None, *, max_radius: np.ndarray,

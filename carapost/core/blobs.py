@@ -523,11 +523,7 @@ class _Table:
         self.cols[:, rows] = tab.T
         self.ok[rows] = ok
 
-    def __getattr__(self, name: str) -> np.ndarray:
-        return self.cols[_COLUMN[name]]
 
-
-_COLUMN = {name: i for i, name in enumerate(OUTPUT_FIELDS)}
 _MEASURE_ROW = {name: i for i, name in enumerate(_MEASURES)}
 #: The measures are the outline outputs in their order (``shape`` is ``shape_residual``) with
 #: ``pixel_noise``, ``level`` and ``border`` inserted before ``open, kept, saturated``.
@@ -535,6 +531,8 @@ _N_HEAD = _MEASURES.index("pixel_noise")
 assert (_MEASURES[:_N_HEAD] == tuple("shape" if f == "shape_residual" else f for f in OUTPUT_FIELDS[:_N_HEAD])
         and _MEASURES[_N_HEAD:_N_HEAD + 3] == ("pixel_noise", "level", "border")
         and _MEASURES[_N_HEAD + 3:] == OUTPUT_FIELDS[_N_HEAD:])
+_X, _Y, _MINOR, _BACKGROUND, _AREA = (_MEASURE_ROW[k] for k in ("x", "y", "minor", "background", "area"))
+assert _MEASURES[_X:_MINOR + 1] == ("x", "y", "major", "minor")
 
 
 def _store(block: np.ndarray, ok: np.ndarray, idx: np.ndarray, fit: "_Table", px: np.ndarray,
@@ -561,10 +559,6 @@ def _store(block: np.ndarray, ok: np.ndarray, idx: np.ndarray, fit: "_Table", px
     v[_AREA] *= s
     block[:, idx] = v
     ok[idx] = fit.ok
-
-
-_X, _Y, _MINOR, _BACKGROUND, _AREA = (_MEASURE_ROW[k] for k in ("x", "y", "minor", "background", "area"))
-assert _Y == _X + 1 and _MEASURES[_X:_MINOR + 1] == ("x", "y", "major", "minor")
 
 
 def _fit_alternatives(ctx: _Context, cands: np.ndarray, min_core: np.ndarray, block: np.ndarray,
