@@ -62,6 +62,17 @@ def test_detect_needs_an_output(capsys, take_files):
     assert code == 1 and "nothing to write" in err
 
 
+def test_detect_and_calibrate_check_their_outputs_first(capsys, take_files, tmp_path):
+    missing = tmp_path / "no_such_folder"
+    code, out, err = run(capsys, "detect", str(take_files["pico_0"]), "--csv", str(missing / "d.csv"))
+    assert code == 1 and f"folder {missing} does not exist" in err and not out
+    code, _, err = run(capsys, "detect", str(take_files["pico_0"]), "--save", str(tmp_path))
+    assert code == 1 and "it is a folder" in err
+    code, _, err = run(capsys, "calibrate", "--target", "checkerboard:4x7:60", "--camera", str(tmp_path),
+                       "--out", str(missing / "c.xcp"))
+    assert code == 1 and f"folder {missing} does not exist" in err
+
+
 def test_convert_video_to_pico(capsys, tmp_path, take_files):
     import cv2
     import numpy as np

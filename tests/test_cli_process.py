@@ -75,6 +75,20 @@ def test_process_needs_seeds_or_auto(capsys, take, tmp_path):
     assert code == 1 and "--seeds" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("where", ["out", "c3d"])
+def test_process_checks_its_outputs_before_the_work(capsys, take, tmp_path, where):
+    _, files = take
+    missing = tmp_path / "no_such_folder"
+    out = missing / "x.cara" if where == "out" else tmp_path / "x.cara"
+    extra = ["--c3d", str(missing / "x.c3d")] if where == "c3d" else []
+    code = main(["process", "--cameras", *picos(files), "--calibration", str(files["xcp"]), "--seeds",
+                 str(files["seeds"]), "--out", str(out), "--no-progress", *extra])
+    text, err = capsys.readouterr()
+    assert code == 1 and f"folder {missing} does not exist" in err and err.count("\n") == 1
+    assert "detect blobs" not in text          # failed before the first stage
+    assert not out.exists()
+
+
 def test_pipeline_undoes_back_to_the_imported_take(take):
     import copy
 

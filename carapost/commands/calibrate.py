@@ -7,6 +7,7 @@ import glob
 from pathlib import Path
 from typing import Any
 
+from .common import check_outputs
 from .progress import progress_bar
 
 __all__ = ["cmd_calibrate", "add_parsers"]
@@ -27,6 +28,7 @@ def cmd_calibrate(args: argparse.Namespace) -> dict[str, Any]:
     from carapost.ops.calibrate import calibrate_cameras_to_file, parse_target
 
     spec = parse_target(args.target)
+    check_outputs(args.out)
     sets = [_expand(p) for p in args.camera]
     with progress_bar("calibrate", unit="image") as prog:
         calib, rig = calibrate_cameras_to_file(sets, spec, args.out, extrinsics=not args.no_extrinsics, progress=prog)

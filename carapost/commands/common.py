@@ -1,16 +1,18 @@
-"""Shared pieces of the command implementations: opening inputs, parsing ranges."""
+"""Shared pieces of the command implementations: opening inputs, parsing ranges, checking outputs."""
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from pathlib import Path
 
 from carapost.ops.session import Session
 
-__all__ = ["open_session", "parse_frames", "parse_cameras", "interrupt_cancels"]
+__all__ = ["open_session", "parse_frames", "parse_cameras", "interrupt_cancels", "check_outputs"]
 
 
 @contextmanager
@@ -88,3 +90,25 @@ def parse_cameras(spec: str | None, n_cameras: int) -> list[int] | None:
     if bad:
         raise ValueError(f"camera(s) {bad} do not exist (the take has {n_cameras})")
     return cams
+
+
+def check_outputs(*paths: str | os.PathLike | None) -> None:
+    """Fail before the work, not after it: each given output file's folder must exist and be
+    writable, and the file must not be a folder (None entries are skipped).
+
+    Raises
+    ------
+    ValueError
+        Naming the first output that cannot be written and why.
+    """
+    for p in paths:
+        if p is None:
+            continue
+        path = Path(p)
+        folder = path.parent if str(path.parent) else Path(".")
+        if path.is_dir():
+            raise ValueError(f"{path}: cannot write: it is a folder")
+        if not folder.is_dir():
+            raise ValueError(f"{path}: cannot write: folder {folder} does not exist")
+        if not os.access(folder, os.W_OK):
+            raise ValueError(f"{path}: cannot write: folder {folder} is not writable")

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .common import open_session, parse_cameras, parse_frames
+from .common import check_outputs, open_session, parse_cameras, parse_frames
 from .progress import progress_bar
 
 __all__ = ["cmd_convert", "cmd_detect"]
@@ -33,6 +33,7 @@ def cmd_detect(args: argparse.Namespace) -> dict[str, Any]:
     """Detect blobs in a take's frames; write a CSV and/or save the take."""
     if not args.csv and not args.save:
         raise ValueError("nothing to write: give --csv OUT.csv and/or --save TAKE.cara")
+    check_outputs(args.csv, args.save)
     session = open_session(args.inputs, args.calibration)
     try:
         return _detect(session, args)

@@ -10,7 +10,7 @@ from typing import Any
 
 from carapost.model.params import FILL_METHODS
 
-from .common import interrupt_cancels
+from .common import check_outputs, interrupt_cancels
 from .progress import progress_bar
 
 __all__ = ["cmd_process", "add_parsers"]
@@ -22,6 +22,7 @@ def cmd_process(args: argparse.Namespace) -> dict[str, Any]:
 
     if not args.seeds and not args.auto_init and not args.rom:
         raise ValueError("give --seeds SEEDS.json, --auto-init or --rom ROM.cara")
+    check_outputs(args.out, args.c3d, args.fbx)
     t0 = time.perf_counter()
     try:
         session = Session.from_sources(args.cameras, args.calibration, name=Path(args.out).stem)
