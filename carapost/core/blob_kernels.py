@@ -47,9 +47,12 @@ _LEVEL_INDEX = np.searchsorted(LEVEL_THRESHOLDS, np.arange(256), side="right") -
 #: irregular) ...
 _MIN_FILL = 0.9
 #: ... a test made only on components of at least this many pixels, and at levels at least
-#: this many noise sigmas (of the 3x3 mean) below the peak ...
+#: this many noise sigmas (of the 3x3 mean) below the peak: the peak is the largest of many
+#: 3x3 means, ~2.5 sigmas above the top of a flat dot, and the component is ragged down to
+#: ~2.5 sigmas below it (4 sigmas made the noisy top of a big white dot in low light look
+#: like a merge, and the core a fragment of it) ...
 _FILL_MIN_AREA = 20
-_TOP_NOISE = 4.0
+_TOP_NOISE = 5.0
 #: ... and not above this level (the top of a flat, clipped or JPEG-coded dot is ragged).
 _MAX_SHAPED_LEVEL = 0.8
 

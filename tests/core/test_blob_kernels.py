@@ -77,7 +77,7 @@ def _search_levels_numpy(pu, bad, sat, radius, half, max_radius, pixel_noise):
     fill = area / (4.0 * np.pi * np.sqrt(np.maximum(vx * vy - vxy * vxy, 1e-6)))
     edge_max = L.reshape(n, -1)[:, edge.ravel()].max(axis=1)
     valid = (edge_max[:, None] < thr[None]) & (area <= (np.pi * (1.3 * max_radius + 2.0) ** 2)[:, None])
-    noise_band = 1.0 - 4.0 * (pixel_noise / 3.0) / peak
+    noise_band = 1.0 - 5.0 * (pixel_noise / 3.0) / peak
     shaped = np.asarray(LEVELS)[None] <= np.minimum(noise_band, 0.8)[:, None]
     valid &= (fill >= 0.9) | (area < 20) | ~shaped
     run = np.cumprod(valid[:, ::-1], axis=1)[:, ::-1].astype(bool)

@@ -77,6 +77,18 @@ def test_accuracy_low_light_and_blur():
     _check_targets(evaluate(frames, dets))
 
 
+def test_white_dots_in_low_light():
+    """White paint at 15 % exposure (skin ~22 grey levels, dots 10-20 above it, shot noise):
+    the noisy top of a big dot must not be taken for a merge (the core would be a fragment of
+    the dot and the fit a few px off). Before that fix: recall 0.983 on these frames."""
+    frames = [render_frame(RenderConfig(polarity="white", low_light=0.15), seed=s) for s in (21, 22)]
+    dets = [detect_blobs(fr.image, params(find_black_blobs=False, find_white_blobs=True)) for fr in frames]
+    r = evaluate(frames, dets, polarity=WHITE)
+    assert r["recall"] >= 0.99 and r["precision"] >= PRECISION, r
+    # The centres are noise-limited here (contrast / noise ~5 per pixel): median 0.17 px, p95 0.40 px.
+    assert r["median_err"] <= 0.2 and r["p95_err"] <= 0.45, r
+
+
 def test_both_polarities_are_told_apart():
     fr = render_frame(RenderConfig(polarity="both", n_dots=120), seed=7)
     d = detect_blobs(fr.image, params(find_white_blobs=True))
