@@ -92,6 +92,26 @@ def test_export_unknown_extension(capsys, take_files, tmp_path):
     assert code == 1 and "error" in err
 
 
+def test_process_auto_init_on_the_real_room_videos(capsys, real_data, tmp_path):
+    """The issue's real-data flow from the command line: Pose2Sim's four videos, its Qualisys
+    calibration, white retro-reflective markers, no caddies (cameras around a room)."""
+    root = real_data / "pose2sim-demo"
+    videos = [str(root / "videos" / f"cam0{c}.mp4") for c in (1, 2, 3, 4)]
+    sets = ["blobs.find_black_blobs=false", "blobs.find_white_blobs=true", "blobs.white_min_radius=1",
+            "blobs.white_max_radius=8", "blobs.white_threshold=0.05", "blobs.adaptive_background=true"]
+    code, out, err = run(capsys, "process", "--cameras", *videos, "--calibration",
+                         str(root / "calibration" / "Calib.qca.txt"), "--auto-init", "--caddies", "none",
+                         *[a for s in sets for a in ("--set", s)], "--out", str(tmp_path / "p.cara"),
+                         "--no-progress", "--json")
+    assert code == 0, err
+    stages = {s["stage"]: s for s in json.loads(out.strip().splitlines()[-1])["stages"]}
+    assert stages["detect blobs"]["detections"] == 392       # 92 / 112 / 98 / 90 (docs/initialize-3d.md)
+    # 3 points at 1.08 px with the default 2 px hypothesis limit; the file's poses are off
+    # (docs/initialize-3d.md): the 1.0 px target is not met, this pins the behaviour.
+    assert stages["initialize 3D"]["points"] >= 2
+    assert stages["initialize 3D"]["median_reprojection_px"] <= 1.5
+
+
 @pytest.mark.slow
 def test_calibrate_real_checkerboards_intrinsics(capsys, real_data, tmp_path):
     folder = real_data / "pose2sim-demo" / "calibration" / "intrinsics"

@@ -89,6 +89,43 @@ def test_process_checks_its_outputs_before_the_work(capsys, take, tmp_path, wher
     assert not out.exists()
 
 
+def test_process_applies_preset_settings_and_caddies(capsys, take, tmp_path):
+    _, files = take
+    out = tmp_path / "s.cara"
+    code = main(["process", "--cameras", *picos(files), "--calibration", str(files["xcp"]), "--seeds",
+                 str(files["seeds"]), "--out", str(out), "--no-progress", "--json", "--preset", "sparse",
+                 "--set", "blobs.black_threshold=0.5", "--set", "Initialize 3D Parameters.Max Allowed Depth=30",
+                 "--caddies", "0-1,2-3"])
+    text, err = capsys.readouterr()
+    assert code == 0, err
+    init = next(s for s in json.loads(text.strip().splitlines()[-1])["stages"] if s["stage"] == "initialize 3D")
+    assert init["points"] > 0 and 0 <= init["median_reprojection_px"] < 0.5
+
+    from carapost.io.cara import load_take
+    from carapost.model.params import sparse_35_preset
+
+    t = load_take(out).take
+    assert t.params.blobs.black_threshold == 0.5 and t.params.init3d.max_allowed_depth == 30
+    assert t.params.tracking == sparse_35_preset().tracking
+    assert t.caddies == [(0, 1), (2, 3)]
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["--set", "blobs.no_such_thing=1"], "settings: Blob Parameters: no property named"),
+    (["--set", "blobs.black_threshold=2"], "settings: Blob Parameters: Black Threshold must be in the range"),
+    (["--set", "blobs=1"], "--set wants GROUP.PROPERTY=VALUE"),
+    (["--caddies", "0-1,1-2"], "settings: caddies: each camera may be in one caddy"),
+    (["--caddies", "a-b"], "--caddies wants camera pairs"),
+])
+def test_process_settings_errors_are_one_line(capsys, take, tmp_path, argv, message):
+    _, files = take
+    code = main(["process", "--cameras", *picos(files), "--calibration", str(files["xcp"]), "--seeds",
+                 str(files["seeds"]), "--out", str(tmp_path / "x.cara"), "--no-progress", *argv])
+    _, err = capsys.readouterr()
+    assert code == 1 and message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "x.cara").exists()
+
+
 def test_pipeline_undoes_back_to_the_imported_take(take):
     import copy
 

@@ -12,7 +12,8 @@ from pathlib import Path
 
 from carapost.ops.session import Session
 
-__all__ = ["open_session", "parse_frames", "parse_cameras", "interrupt_cancels", "check_outputs"]
+__all__ = ["open_session", "parse_frames", "parse_cameras", "parse_settings", "parse_caddies", "apply_settings",
+           "interrupt_cancels", "check_outputs"]
 
 
 @contextmanager
@@ -112,3 +113,52 @@ def check_outputs(*paths: str | os.PathLike | None) -> None:
             raise ValueError(f"{path}: cannot write: folder {folder} does not exist")
         if not os.access(folder, os.W_OK):
             raise ValueError(f"{path}: cannot write: folder {folder} is not writable")
+
+
+def parse_settings(items: Sequence[str] | None) -> list[tuple[str, str, str]]:
+    """``["blobs.white_threshold=0.05", "Blob Parameters.Find White Blobs=true"]`` ->
+    ``[(group, property, value), ...]`` (checked against the take when applied)."""
+    out = []
+    for item in items or ():
+        key, sep, value = item.partition("=")
+        group, dot, name = key.rpartition(".")
+        if not sep or not dot or not group.strip() or not name.strip():
+            raise ValueError(f"--set wants GROUP.PROPERTY=VALUE (e.g. blobs.white_threshold=0.05), got {item!r}")
+        out.append((group.strip(), name.strip(), value.strip()))
+    return out
+
+
+def parse_caddies(spec: str | None) -> list[tuple[int, int]] | None:
+    """``"0-1,2-3"`` -> [(0, 1), (2, 3)]; ``"none"`` -> []; None: keep the take's."""
+    if spec is None:
+        return None
+    if spec.strip().lower() == "none":
+        return []
+    try:
+        return [(int(a), int(b)) for a, b in (pair.split("-") for pair in spec.split(",") if pair.strip())]
+    except ValueError:
+        raise ValueError(f"--caddies wants camera pairs like 0-1,2-3 or none, got {spec!r}") from None
+
+
+def apply_settings(session: Session, *, preset: str | None = None, settings: Sequence[tuple[str, str, str]] = (),
+                   caddies: Sequence[tuple[int, int]] | None = None) -> None:
+    """Apply a parameter preset, then single properties, then the caddies to the session's take
+    (each an undoable change, as in the Properties pane).
+
+    Raises
+    ------
+    ValueError
+        An unknown preset, group or property, or a value the property refuses.
+    """
+    from carapost.ops.settings import apply_preset, set_caddies, set_property
+
+    take = session.take
+    if preset is not None:
+        session.apply(apply_preset(take, preset))
+    for group, name, value in settings:
+        try:
+            session.apply(set_property(take, group, name, value))
+        except KeyError as exc:          # unknown group or property: the message lists the known ones
+            raise ValueError(str(exc.args[0])) from None
+    if caddies is not None:
+        session.apply(set_caddies(take, caddies))

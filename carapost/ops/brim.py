@@ -72,7 +72,7 @@ def solve_brim_manual(take: Take, frame: int, correspondences: Mapping[int, Mapp
     R0 = take.R[frame] if np.isfinite(take.R[frame]).all() else None
     t0 = take.t[frame] if np.isfinite(take.t[frame]).all() else None
     res = solve_brim(take.brim, take.intrinsics(), dets, correspondences, match_radius_px=match_radius_px,
-                     initial_R=R0, initial_t=t0, caddies=take.caddies or ((0, 1), (2, 3)))
+                     initial_R=R0, initial_t=t0, caddies=take.caddies)
     solved = res.solved
     changes: list[Change] = []
     frames = np.arange(take.n_frames) if all_frames else np.array([frame])

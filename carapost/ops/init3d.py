@@ -86,7 +86,7 @@ def initialize_3d_op(take: Take, frame: int, *, auto: bool = False, bundle: bool
         raise ValueError(f"Initialize 3D: no detections in frame {frame}; detect blobs first")
     dets = _frame_detections(take, frame)
     brim_xyz, exclude = _brim_inputs(take, frame)
-    caddies = take.caddies or [(0, 1), (2, 3)]
+    caddies = take.caddies
     seeds_cols = seed_columns(take, frame)
     kw = dict(caddies=caddies, exclude=exclude, brim_xyz=brim_xyz, bundle=bundle)
     if auto:

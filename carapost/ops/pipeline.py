@@ -18,6 +18,8 @@ from typing import Any
 
 import numpy as np
 
+from carapost.model.take import Take
+
 from .session import Session
 
 __all__ = ["PipelineError", "PipelineOptions", "run_pipeline", "track_both_ways", "stabilize_all"]
@@ -194,7 +196,7 @@ def run_pipeline(session: Session, options: PipelineOptions, *, report: Report |
             session.apply(initialize_3d_op(take, frame, auto=options.auto_init))
         face = take.face_points()
         n3d = int(np.isfinite(take.xyz[frame, face]).all(-1).sum())
-        done("initialize 3D", t0, points=n3d)
+        done("initialize 3D", t0, points=n3d, median_reprojection_px=_median_reprojection(take, frame, face))
 
     # 5. Tracking, gap filling, stabilization.
     if options.track:
@@ -279,3 +281,17 @@ def stabilize_all(session: Session) -> dict[str, Any]:
     change = stabilize_assisted(take, full)
     session.apply(change)
     return {"points": int(len(full)), **{k: v for k, v in change.report.items() if isinstance(v, (int, float))}}
+
+
+def _median_reprojection(take: Take, frame: int, points: np.ndarray) -> float:
+    """Median reprojection error (raw px) of the observations of ``points`` in ``frame``
+    (NaN without any)."""
+    from carapost.core.bundle import reprojection_errors
+
+    sel = np.asarray(points)
+    if not len(sel):
+        return float("nan")
+    err = reprojection_errors(take.obs_xy[frame:frame + 1, sel].astype(float), take.intrinsics(),
+                              take.R[frame:frame + 1], take.t[frame:frame + 1], take.xyz[frame:frame + 1, sel])
+    err = err[np.isfinite(err)]
+    return round(float(np.median(err)), 3) if len(err) else float("nan")

@@ -17,6 +17,7 @@ __all__ = [
     "set_property",
     "restore_properties",
     "apply_preset",
+    "set_caddies",
     "set_active_range",
     "set_view_range",
     "increment_image_sequence_offset",
@@ -47,6 +48,27 @@ def apply_preset(take: Take, preset: str) -> AttributeChange:
     if preset not in PRESETS:
         raise ValueError(f"unknown preset {preset!r}; choose from {', '.join(PRESETS)}")
     return AttributeChange.capture(take, "params", PRESETS[preset](take.params), f"Preset: {preset}")
+
+
+def set_caddies(take: Take, caddies: Sequence[tuple[int, int]]) -> AttributeChange:
+    """The camera pairs that are caddies (two cameras on one side of a head-mounted rig:
+    Initialize 3D grows two-view points within each); none for cameras standing around a
+    room, where every point must be seen by more cameras.
+
+    Raises
+    ------
+    ValueError
+        A camera that does not exist, a pair of one camera, or a camera in two caddies.
+    """
+    pairs = [(int(a), int(b)) for a, b in caddies]
+    used = [c for pair in pairs for c in pair]
+    bad = [c for c in used if not 0 <= c < take.n_cameras]
+    if bad:
+        raise ValueError(f"caddies: camera(s) {sorted(set(bad))} do not exist (the take has {take.n_cameras})")
+    if any(a == b for a, b in pairs) or len(set(used)) != len(used):
+        raise ValueError(f"caddies: each camera may be in one caddy of two different cameras, got {pairs}")
+    text = ", ".join(f"{a}-{b}" for a, b in pairs) or "none"
+    return AttributeChange.capture(take, "caddies", pairs, f"Caddies: {text}")
 
 
 def _range(take: Take, start: int, end: int, what: str) -> tuple[int, int]:

@@ -22,6 +22,7 @@ from carapost.ops.settings import (
     restore_properties,
     rotate_sensors,
     set_active_range,
+    set_caddies,
     set_property,
 )
 
@@ -91,6 +92,18 @@ def test_settings(sess, undo_check):
     assert s.take.cameras[2].rotation == 90
     with pytest.raises(ValueError, match="2D information"):
         increment_image_sequence_offset(s.take, [0])
+
+
+def test_caddies(sess, undo_check):
+    s = sess
+    undo_check(s, set_caddies(s.take, []))           # cameras around a room: no caddies
+    assert s.take.caddies == []
+    undo_check(s, set_caddies(s.take, [(0, 2), (1, 3)]))
+    assert s.take.caddies == [(0, 2), (1, 3)]
+    for bad in ([(0, 4)], [(1, 1)], [(0, 1), (1, 2)]):
+        with pytest.raises(ValueError, match="caddies"):
+            set_caddies(s.take, bad)
+    assert s.take.caddies == [(0, 2), (1, 3)]
 
 
 def test_offset_on_fresh_camera(sess, undo_check):
