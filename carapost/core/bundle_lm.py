@@ -100,7 +100,7 @@ def solve_lm(obs: np.ndarray, cam: np.ndarray, obs_cam: np.ndarray, obs_pt: np.n
     cam_group, cam_slot : (n_cam,) the dense group and slot of each free camera (cameras of one
         group share points); ``n_slots`` slots per group.
     """
-    n_cam, n_pt, N = len(R0), len(X0), len(obs)
+    n_cam, n_pt = len(R0), len(X0)
     n_grp = int(cam_group.max()) + 1 if n_cam else 0
     has_c = obs_cam >= 0
     has_p = obs_pt >= 0
