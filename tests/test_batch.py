@@ -256,6 +256,31 @@ def test_failures_are_per_take_and_name_the_step(capture, tmp_path):
     assert r["status"] == "error" and r["error"].startswith("detect: TypeError") and "Traceback" in r["traceback"]
 
 
+def test_settings_reach_every_take_and_the_split_detection(capture, tmp_path):
+    import dataclasses
+
+    from carapost.io.cara import load_take
+
+    _, reference = capture
+    put_take(capture, tmp_path / "a", "A")
+    jobs = find_takes([tmp_path])
+    opts = BatchOptions(settings=(("blobs", "Black Threshold", "0.9"),), caddies=())
+    (r,) = run_batch(jobs, opts)
+    assert r["status"] == "done", r["error"]
+    take = load_take(r["output"]).take
+    assert take.params.blobs.black_threshold == 0.9 and take.caddies == []
+    n_strict = sum(len(d) for d in take.detections)
+    assert n_strict < sum(len(t["x"]) for tabs in reference.values() for t in tabs.values())
+    assert read_manifest(r["output"])["recipe"]["settings"]["set"] == [["blobs", "Black Threshold", "0.9"]]
+    assert job_plan(jobs[0], opts) == ("skip", "up to date")
+    assert job_plan(jobs[0], BatchOptions()) == ("run", "steps or options changed")
+    (r,) = run_batch(jobs, dataclasses.replace(opts, split_detect="on", force=True))
+    assert r["status"] == "done" and r["steps"][0]["split_chunks"] == 2
+    assert sum(len(d) for d in load_take(r["output"]).take.detections) == n_strict
+    (r,) = run_batch(jobs, BatchOptions(settings=(("blobs", "no_such_thing", "1"),), force=True))
+    assert r["status"] == "error" and r["error"].startswith("open: settings: Blob Parameters: no property")
+
+
 # -------------------------------------------------------------------------------- command line
 def test_cli_batch_json_dry_run_and_exit_codes(capture, tmp_path, capsys):
     _, reference = capture

@@ -10,6 +10,7 @@ from typing import Any
 
 from carapost.model.params import FILL_METHODS
 
+from .common import add_settings_arguments, parse_caddies, parse_settings
 from .progress import progress_bar
 
 __all__ = ["cmd_batch", "add_parsers"]
@@ -39,7 +40,8 @@ def cmd_batch(args: argparse.Namespace) -> dict[str, Any]:
     options = BatchOptions(steps=tuple(args.steps.split(",")), out_dir=args.out, calibration=args.calibration,
                            brim=args.brim, auto_init=args.auto_init, frame=args.frame,
                            formats=tuple(args.formats.split(",")), fill_method=args.fill_method, force=args.force,
-                           threads=threads, split_detect=args.split_detect)
+                           threads=threads, split_detect=args.split_detect, preset=args.preset,
+                           settings=tuple(parse_settings(args.set)), caddies=_caddies(args.caddies))
     steps, unavailable = resolve_steps(options.steps)
     for name, why in unavailable.items():
         print(f"carapost batch: step {name} skipped: {why}", file=sys.stderr)
@@ -105,5 +107,11 @@ def add_parsers(sub: Any) -> dict[str, Any]:
                    help="fill: gap-filling method")
     p.add_argument("--force", action="store_true",
                    help="redo up-to-date takes and overwrite .cara files that batch did not write")
+    add_settings_arguments(p)
     p.add_argument("--dry-run", action="store_true", help="list the takes and what would be done; change nothing")
     return {"batch": cmd_batch}
+
+
+def _caddies(spec: str | None) -> tuple[tuple[int, int], ...] | None:
+    pairs = parse_caddies(spec)
+    return None if pairs is None else tuple(pairs)

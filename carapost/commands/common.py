@@ -9,11 +9,12 @@ import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from carapost.ops.session import Session
 
-__all__ = ["open_session", "parse_frames", "parse_cameras", "parse_settings", "parse_caddies", "apply_settings",
-           "interrupt_cancels", "check_outputs"]
+__all__ = ["open_session", "parse_frames", "parse_cameras", "parse_settings", "parse_caddies", "interrupt_cancels",
+           "check_outputs", "add_settings_arguments"]
 
 
 @contextmanager
@@ -140,25 +141,16 @@ def parse_caddies(spec: str | None) -> list[tuple[int, int]] | None:
         raise ValueError(f"--caddies wants camera pairs like 0-1,2-3 or none, got {spec!r}") from None
 
 
-def apply_settings(session: Session, *, preset: str | None = None, settings: Sequence[tuple[str, str, str]] = (),
-                   caddies: Sequence[tuple[int, int]] | None = None) -> None:
-    """Apply a parameter preset, then single properties, then the caddies to the session's take
-    (each an undoable change, as in the Properties pane).
+def add_settings_arguments(p: Any) -> None:
+    """``--preset``, ``--set GROUP.PROPERTY=VALUE`` and ``--caddies`` on parser ``p`` (read
+    back with :func:`parse_settings` and :func:`parse_caddies`)."""
+    from carapost.model.params import PRESETS
 
-    Raises
-    ------
-    ValueError
-        An unknown preset, group or property, or a value the property refuses.
-    """
-    from carapost.ops.settings import apply_preset, set_caddies, set_property
-
-    take = session.take
-    if preset is not None:
-        session.apply(apply_preset(take, preset))
-    for group, name, value in settings:
-        try:
-            session.apply(set_property(take, group, name, value))
-        except KeyError as exc:          # unknown group or property: the message lists the known ones
-            raise ValueError(str(exc.args[0])) from None
-    if caddies is not None:
-        session.apply(set_caddies(take, caddies))
+    p.add_argument("--preset", choices=tuple(PRESETS),
+                   help="the guide's parameter set for the marker density (dense: 156 markers, sparse: 35)")
+    p.add_argument("--set", action="append", metavar="GROUP.PROPERTY=VALUE",
+                   help="set a property as in the Properties pane, after --preset; repeatable, e.g. "
+                        "--set blobs.find_white_blobs=true --set \"blobs.White Threshold=0.05\"")
+    p.add_argument("--caddies", metavar="PAIRS",
+                   help="camera pairs on one side of the head rig, e.g. 0-1,2-3 (the default for four "
+                        "cameras), or none for cameras standing around a room")

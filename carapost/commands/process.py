@@ -8,9 +8,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from carapost.model.params import FILL_METHODS, PRESETS
+from carapost.model.params import FILL_METHODS
 
-from .common import apply_settings, check_outputs, interrupt_cancels, parse_caddies, parse_settings
+from .common import add_settings_arguments, check_outputs, interrupt_cancels, parse_caddies, parse_settings
 from .progress import progress_bar
 
 __all__ = ["cmd_process", "add_parsers"]
@@ -19,6 +19,7 @@ __all__ = ["cmd_process", "add_parsers"]
 def cmd_process(args: argparse.Namespace) -> dict[str, Any]:
     from carapost.ops.pipeline import PipelineOptions, run_pipeline
     from carapost.ops.session import Session
+    from carapost.ops.settings import apply_settings
 
     if not args.seeds and not args.auto_init and not args.rom:
         raise ValueError("give --seeds SEEDS.json, --auto-init or --rom ROM.cara")
@@ -92,14 +93,7 @@ def add_parsers(sub: Any) -> dict[str, Any]:
     p.add_argument("--stabilize", action="store_true",
                    help="Stabilize Data [Assisted] over the gap-free face points (exports use the stabilized data "
                         "when the Export section says so)")
-    p.add_argument("--preset", choices=tuple(PRESETS),
-                   help="the guide's parameter set for the marker density (dense: 156 markers, sparse: 35)")
-    p.add_argument("--set", action="append", metavar="GROUP.PROPERTY=VALUE",
-                   help="set a property as in the Properties pane, after --preset; repeatable, e.g. "
-                        "--set blobs.find_white_blobs=true --set \"blobs.White Threshold=0.05\"")
-    p.add_argument("--caddies", metavar="PAIRS",
-                   help="camera pairs on one side of the head rig, e.g. 0-1,2-3 (the default for four "
-                        "cameras), or none for cameras standing around a room")
+    add_settings_arguments(p)
     p.add_argument("--out", required=True, type=Path, help="the .cara project to write")
     p.add_argument("--c3d", type=Path, help="also export a C3D")
     p.add_argument("--fbx", type=Path, help="also export an FBX")

@@ -157,12 +157,19 @@ def _result(job: TakeJob, status: str, **extra: Any) -> dict[str, Any]:
             "reason": None, "error": None, "seconds": 0.0, "steps": [], "files": [], "messages": [], **extra}
 
 
-def _open_session(job: TakeJob) -> Any:
+def _open_session(job: TakeJob, options: BatchOptions) -> Any:
+    """The take's session with ``options``' preset, settings and caddies applied."""
     from .session import Session
+    from .settings import apply_settings
 
-    if job.kind == "cara":
-        return Session.open(job.inputs[0])
-    return Session.from_sources(list(job.inputs), job.calibration, name=job.name)
+    session = Session.open(job.inputs[0]) if job.kind == "cara" else \
+        Session.from_sources(list(job.inputs), job.calibration, name=job.name)
+    try:
+        apply_settings(session, preset=options.preset, settings=options.settings, caddies=options.caddies)
+    except (ValueError, KeyError) as exc:
+        session.close()
+        raise ValueError(f"settings: {exc}") from None
+    return session
 
 
 def run_job(job: TakeJob, options: BatchOptions, detections: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -215,7 +222,7 @@ def _run_steps(job: TakeJob, options: BatchOptions, detections: dict[str, Any] |
         stage = "manifest"
         _write_json(mpath, man)
         stage = "open"
-        with _open_session(job) as session:
+        with _open_session(job, options) as session:
             res["messages"] += session.messages
             ctx = JobContext(session, job, options, detections)
             for name in steps:
@@ -254,7 +261,7 @@ def _detect_plan(job: TakeJob, options: BatchOptions) -> tuple[Any, list[int]]:
 
     if job.problem:
         raise ValueError(job.problem)
-    with _open_session(job) as session:
+    with _open_session(job, options) as session:
         return detect_task(session.take, session.sources), _undetected(session.take)
 
 

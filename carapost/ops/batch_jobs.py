@@ -86,6 +86,13 @@ class BatchOptions:
     split_detect : {"auto", "on", "off"}
         Split each take's blob detection by frame range across the workers: always, never, or
         when fewer takes than workers are to run.
+    preset : str or None
+        Parameter preset applied to every take when it is opened (``default | dense | sparse``).
+    settings : tuple of (group, property, value)
+        Properties set on every take when it is opened, after the preset
+        (:func:`carapost.ops.settings.apply_settings`).
+    caddies : tuple of camera pairs or None
+        Caddies of every take (empty: none); None keeps each take's.
     """
 
     steps: tuple[str, ...] = ("detect",)
@@ -99,6 +106,9 @@ class BatchOptions:
     force: bool = False
     threads: int = 1
     split_detect: str = "auto"
+    preset: str | None = None
+    settings: tuple[tuple[str, str, str], ...] = ()
+    caddies: tuple[tuple[int, int], ...] | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "formats", tuple(dict.fromkeys(f.strip().lower().lstrip(".") for f in self.formats)))
@@ -120,6 +130,9 @@ class BatchOptions:
     def recipe(self, job: TakeJob) -> dict[str, Any]:
         """What a take's outputs depend on besides its input files (compared on reruns)."""
         r: dict[str, Any] = {"steps": list(resolve_steps(self.steps)[0])}
+        if self.preset is not None or self.settings or self.caddies is not None:
+            r["settings"] = {"preset": self.preset, "set": [list(x) for x in self.settings],
+                             "caddies": None if self.caddies is None else [list(x) for x in self.caddies]}
         if "init" in self.steps:
             r.update(seeds=job.seeds, brim=job.brim, auto_init=self.auto_init)
         if "init" in self.steps or "track" in self.steps:

@@ -17,6 +17,7 @@ __all__ = [
     "set_property",
     "restore_properties",
     "apply_preset",
+    "apply_settings",
     "set_caddies",
     "set_active_range",
     "set_view_range",
@@ -69,6 +70,29 @@ def set_caddies(take: Take, caddies: Sequence[tuple[int, int]]) -> AttributeChan
         raise ValueError(f"caddies: each camera may be in one caddy of two different cameras, got {pairs}")
     text = ", ".join(f"{a}-{b}" for a, b in pairs) or "none"
     return AttributeChange.capture(take, "caddies", pairs, f"Caddies: {text}")
+
+
+def apply_settings(session: Any, *, preset: str | None = None, settings: Sequence[tuple[str, str, str]] = (),
+                   caddies: Sequence[tuple[int, int]] | None = None) -> None:
+    """Apply a parameter preset, then single properties ``(group, property, value)``, then the
+    caddies to a :class:`~carapost.ops.session.Session`'s take (each an undoable change, as in
+    the Properties pane; the command line's ``--preset``, ``--set``, ``--caddies``).
+
+    Raises
+    ------
+    ValueError
+        An unknown preset, group or property, or a value the property refuses.
+    """
+    take = session.take
+    if preset is not None:
+        session.apply(apply_preset(take, preset))
+    for group, name, value in settings:
+        try:
+            session.apply(set_property(take, group, name, value))
+        except KeyError as exc:          # unknown group or property: the message lists the known ones
+            raise ValueError(str(exc.args[0])) from None
+    if caddies is not None:
+        session.apply(set_caddies(take, caddies))
 
 
 def _range(take: Take, start: int, end: int, what: str) -> tuple[int, int]:
