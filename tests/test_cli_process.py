@@ -116,11 +116,13 @@ def test_process_applies_preset_settings_and_caddies(capsys, take, tmp_path):
     (["--set", "blobs=1"], "--set wants GROUP.PROPERTY=VALUE"),
     (["--caddies", "0-1,1-2"], "settings: caddies: each camera may be in one caddy"),
     (["--caddies", "a-b"], "--caddies wants camera pairs"),
+    (["--set", "init3d.auto_min_views=5"], "Automatic Min Views (5) exceeds the take's 4 cameras"),
 ])
 def test_process_settings_errors_are_one_line(capsys, take, tmp_path, argv, message):
     _, files = take
-    code = main(["process", "--cameras", *picos(files), "--calibration", str(files["xcp"]), "--seeds",
-                 str(files["seeds"]), "--out", str(tmp_path / "x.cara"), "--no-progress", *argv])
+    init = ["--auto-init"] if "auto_min_views" in " ".join(argv) else ["--seeds", str(files["seeds"])]
+    code = main(["process", "--cameras", *picos(files), "--calibration", str(files["xcp"]), *init,
+                 "--out", str(tmp_path / "x.cara"), "--no-progress", *argv])
     _, err = capsys.readouterr()
     assert code == 1 and message in err and err.count("\n") == 1, err
     assert not (tmp_path / "x.cara").exists()

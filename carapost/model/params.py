@@ -186,6 +186,12 @@ class Initialize3DParameters(ParamSection):
     max_allowed_symmetric_epipolar_distance: float = p(
         5.0, "Max Allowed Symmetric Epipolar Distance", unit="px", lo=0.0, hi=100.0,
         help="Largest epipolar error of a match between the two cameras of a caddy.")
+    auto_min_views: int = p(3, "Automatic Min Views", lo=2, hi=64,
+                            help="Initialize 3D without seeds: fewest cameras a point must be verified in "
+                                 "(2 accepts epipolar pairs nothing else confirms).")
+    auto_max_reprojection_error: float = p(
+        2.0, "Automatic Max Reprojection Error", unit="px", lo=0.1, hi=50.0,
+        help="Initialize 3D without seeds: largest reprojection error of a view of a matched point.")
 
 
 @dataclass

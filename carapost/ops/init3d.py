@@ -90,7 +90,12 @@ def initialize_3d_op(take: Take, frame: int, *, auto: bool = False, bundle: bool
     seeds_cols = seed_columns(take, frame)
     kw = dict(caddies=caddies, exclude=exclude, brim_xyz=brim_xyz, bundle=bundle)
     if auto:
-        res = auto_initialize(dets, take.intrinsics(), take.R[frame], take.t[frame], take.params.init3d, **kw)
+        pa = take.params.init3d
+        if pa.auto_min_views > take.n_cameras:
+            raise ValueError(f"Initialize 3D: Automatic Min Views ({pa.auto_min_views}) exceeds the take's "
+                             f"{take.n_cameras} cameras")
+        res = auto_initialize(dets, take.intrinsics(), take.R[frame], take.t[frame], pa, min_views=pa.auto_min_views,
+                              max_reprojection_px=pa.auto_max_reprojection_error, **kw)
         seeds_cols = seeds_cols[:0]
     else:
         if len(seeds_cols) == 0:

@@ -25,6 +25,7 @@ def test_guide_defaults():
     assert p.blobs.find_black_blobs and not p.blobs.find_white_blobs
     assert (p.init3d.max_allowed_depth, p.init3d.max_3d_distance_to_merge,
             p.init3d.max_allowed_symmetric_epipolar_distance) == (35, 5, 5)
+    assert (p.init3d.auto_min_views, p.init3d.auto_max_reprojection_error) == (3, 2.0)   # not the guide's
     assert (p.rom.rom_face_point_tracking_distance, p.rom.rom_brim_point_tracking_distance) == (50, 30)
     assert p.stabilization.stable_points_percent == 0.25 and p.stabilization.max_processing_iterations == 50
     assert p.tracker.break_threshold == 0.9
