@@ -57,6 +57,20 @@ def test_detect_csv_and_save_then_export(capsys, take_files, tmp_path):
     assert code == 0, err
 
 
+def test_detect_takes_settings_then_flags(capsys, take_files, tmp_path):
+    cara = tmp_path / "s.cara"
+    code, _, err = run(capsys, "detect", str(take_files["pico_0"]), "--calibration", str(take_files["xcp"]),
+                       "--save", str(cara), "--frames", "0", "--set", "blobs.adaptive_background=true", "--set",
+                       "blobs.black_threshold=0.7", "--black-threshold", "0.6", "--no-progress")
+    assert code == 0, err
+    from carapost.io.cara import load_take
+
+    p = load_take(cara).take.params.blobs
+    assert p.adaptive_background and p.black_threshold == 0.6      # the dedicated flag comes last
+    code, _, err = run(capsys, "detect", str(take_files["pico_0"]), "--save", str(cara), "--set", "blobs.nope=1")
+    assert code == 1 and "settings: Blob Parameters: no property named 'nope'" in err
+
+
 def test_detect_needs_an_output(capsys, take_files):
     code, _, err = run(capsys, "detect", str(take_files["pico_0"]))
     assert code == 1 and "nothing to write" in err

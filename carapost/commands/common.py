@@ -141,9 +141,9 @@ def parse_caddies(spec: str | None) -> list[tuple[int, int]] | None:
         raise ValueError(f"--caddies wants camera pairs like 0-1,2-3 or none, got {spec!r}") from None
 
 
-def add_settings_arguments(p: Any) -> None:
-    """``--preset``, ``--set GROUP.PROPERTY=VALUE`` and ``--caddies`` on parser ``p`` (read
-    back with :func:`parse_settings` and :func:`parse_caddies`)."""
+def add_settings_arguments(p: Any, *, caddies: bool = True) -> None:
+    """``--preset``, ``--set GROUP.PROPERTY=VALUE`` and (with ``caddies``) ``--caddies`` on
+    parser ``p`` (read back with :func:`parse_settings` and :func:`parse_caddies`)."""
     from carapost.model.params import PRESETS
 
     p.add_argument("--preset", choices=tuple(PRESETS),
@@ -151,6 +151,8 @@ def add_settings_arguments(p: Any) -> None:
     p.add_argument("--set", action="append", metavar="GROUP.PROPERTY=VALUE",
                    help="set a property as in the Properties pane, after --preset; repeatable, e.g. "
                         "--set blobs.find_white_blobs=true --set \"blobs.White Threshold=0.05\"")
+    if not caddies:
+        return
     p.add_argument("--caddies", metavar="PAIRS",
                    help="camera pairs on one side of the head rig, e.g. 0-1,2-3 (the default for four "
                         "cameras), or none for cameras standing around a room")

@@ -7,7 +7,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from .common import check_outputs, open_session, parse_cameras, parse_frames
+from .common import add_settings_arguments, check_outputs, open_session, parse_cameras, parse_frames, parse_settings
 from .progress import progress_bar
 
 __all__ = ["cmd_convert", "cmd_detect"]
@@ -34,19 +34,24 @@ def cmd_detect(args: argparse.Namespace) -> dict[str, Any]:
     if not args.csv and not args.save:
         raise ValueError("nothing to write: give --csv OUT.csv and/or --save TAKE.cara")
     check_outputs(args.csv, args.save)
+    settings = parse_settings(args.set)
     session = open_session(args.inputs, args.calibration)
     try:
-        return _detect(session, args)
+        return _detect(session, args, settings)
     finally:
         session.close()
 
 
-def _detect(session: Any, args: argparse.Namespace) -> dict[str, Any]:
+def _detect(session: Any, args: argparse.Namespace, settings: list[tuple[str, str, str]]) -> dict[str, Any]:
     from carapost.io.detections_csv import tables_from_detections, write_detections_csv
     from carapost.ops.detect import detect_blobs
-    from carapost.ops.settings import set_property
+    from carapost.ops.settings import apply_settings, set_property
 
     take = session.take
+    try:
+        apply_settings(session, preset=args.preset, settings=settings)     # then the flags below
+    except ValueError as exc:
+        raise ValueError(f"settings: {exc}") from None
     for name in ("black_threshold", "white_threshold", "black_min_radius", "black_max_radius",
                  "white_min_radius", "white_max_radius"):
         value = getattr(args, name)
@@ -103,4 +108,5 @@ def add_parsers(sub: argparse._SubParsersAction) -> dict[str, Any]:
         p.add_argument(f"--{colour}-threshold", dest=f"{colour}_threshold", type=float)
         p.add_argument(f"--{colour}-min-radius", dest=f"{colour}_min_radius", type=float)
         p.add_argument(f"--{colour}-max-radius", dest=f"{colour}_max_radius", type=float)
+    add_settings_arguments(p, caddies=False)
     return {"convert": cmd_convert, "detect": cmd_detect}
