@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from carapost.ops.session import Session
+from carapost.ops.settings import parse_caddies
 
 __all__ = ["open_session", "parse_frames", "parse_cameras", "parse_settings", "parse_caddies", "interrupt_cancels",
            "check_outputs", "add_settings_arguments"]
@@ -127,18 +128,6 @@ def parse_settings(items: Sequence[str] | None) -> list[tuple[str, str, str]]:
             raise ValueError(f"--set wants GROUP.PROPERTY=VALUE (e.g. blobs.white_threshold=0.05), got {item!r}")
         out.append((group.strip(), name.strip(), value.strip()))
     return out
-
-
-def parse_caddies(spec: str | None) -> list[tuple[int, int]] | None:
-    """``"0-1,2-3"`` -> [(0, 1), (2, 3)]; ``"none"`` -> []; None: keep the take's."""
-    if spec is None:
-        return None
-    if spec.strip().lower() == "none":
-        return []
-    try:
-        return [(int(a), int(b)) for a, b in (pair.split("-") for pair in spec.split(",") if pair.strip())]
-    except ValueError:
-        raise ValueError(f"--caddies wants camera pairs like 0-1,2-3 or none, got {spec!r}") from None
 
 
 def add_settings_arguments(p: Any, *, caddies: bool = True) -> None:

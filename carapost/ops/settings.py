@@ -19,6 +19,8 @@ __all__ = [
     "apply_preset",
     "apply_settings",
     "set_caddies",
+    "parse_caddies",
+    "format_caddies",
     "set_active_range",
     "set_view_range",
     "increment_image_sequence_offset",
@@ -68,8 +70,24 @@ def set_caddies(take: Take, caddies: Sequence[tuple[int, int]]) -> AttributeChan
         raise ValueError(f"caddies: camera(s) {sorted(set(bad))} do not exist (the take has {take.n_cameras})")
     if any(a == b for a, b in pairs) or len(set(used)) != len(used):
         raise ValueError(f"caddies: each camera may be in one caddy of two different cameras, got {pairs}")
-    text = ", ".join(f"{a}-{b}" for a, b in pairs) or "none"
-    return AttributeChange.capture(take, "caddies", pairs, f"Caddies: {text}")
+    return AttributeChange.capture(take, "caddies", pairs, f"Caddies: {format_caddies(pairs)}")
+
+
+def parse_caddies(spec: str | None) -> list[tuple[int, int]] | None:
+    """``"0-1,2-3"`` -> [(0, 1), (2, 3)]; ``"none"`` (or nothing) -> []; None: keep the take's."""
+    if spec is None:
+        return None
+    if spec.strip().lower() in ("none", ""):
+        return []
+    try:
+        return [(int(a), int(b)) for a, b in (pair.split("-") for pair in spec.split(",") if pair.strip())]
+    except ValueError:
+        raise ValueError(f"--caddies wants camera pairs like 0-1,2-3 or none, got {spec!r}") from None
+
+
+def format_caddies(caddies: Sequence[tuple[int, int]]) -> str:
+    """The inverse of :func:`parse_caddies`: ``"0-1,2-3"`` or ``"none"``."""
+    return ",".join(f"{a}-{b}" for a, b in caddies) or "none"
 
 
 def apply_settings(session: Any, *, preset: str | None = None, settings: Sequence[tuple[str, str, str]] = (),

@@ -147,3 +147,17 @@ def align_data(w: "MainWindow") -> None:
     if len(cols) != 3:
         raise ValueError("Align Data: select exactly three face points")
     _reported(w, "Align Data", lambda: ops("fill").align_data(take, cols, frame=f))
+
+
+def set_caddies(w: "MainWindow") -> None:
+    """Caddies...: the camera pairs Initialize 3D grows two-view points in (two cameras on one
+    side of a head rig), or none for cameras standing around a room."""
+    from carapost.ops import settings as settings_ops
+
+    take = w.doc.take
+    text = w.prompts.get_text("Caddies", "Camera pairs on one side of the head rig (e.g. 0-1,2-3), or none "
+                              "for cameras around a room:", settings_ops.format_caddies(take.caddies))
+    if text is None:
+        return
+    pairs = settings_ops.parse_caddies(text)
+    w.apply(settings_ops.set_caddies(take, pairs or []))

@@ -177,6 +177,29 @@ def test_initialize_3d_grows_from_seeds(qtbot, loaded, tiny_files):
     assert take.n_points == n_points
 
 
+def test_initialize_3d_automatic_and_caddies(qtbot, loaded, tiny_files):
+    synth, _ = tiny_files
+    w = loaded
+    take = w.doc.take
+    inject_truth(w, synth, markers=0)                # truth detections, no seeds
+    n = w.doc.undo.count()
+    w.doc.set_frame(0)
+    w.actions["process.init3d_auto"].trigger()
+    wait(qtbot, w)
+    assert w.doc.undo.count() == n + 1 and take.n_points >= 20
+    w.doc.undo.undo()
+    assert take.n_points == 0
+    # Caddies...: the prompt shows the take's, an answer sets them (undoable), a bad one changes nothing.
+    w.prompts.answers["get_text"] = "none"
+    w.actions["process.caddies"].trigger()
+    assert take.caddies == [] and w.doc.undo.count() == n + 1
+    w.prompts.answers["get_text"] = "0-1,1-2"
+    w.actions["process.caddies"].trigger()
+    assert take.caddies == [] and w.doc.undo.count() == n + 1
+    w.doc.undo.undo()
+    assert take.caddies == [(0, 1), (2, 3)]
+
+
 @pytest.mark.parametrize("key", ["process.init_rom", "process.init_rom_brim"])
 def test_initialize_from_rom_without_rom_reports_instead_of_failing(loaded, key):
     n = loaded.doc.undo.count()
