@@ -115,7 +115,7 @@ def test_process_applies_preset_settings_and_caddies(capsys, take, tmp_path):
     (["--set", "blobs.black_threshold=2"], "settings: Blob Parameters: Black Threshold must be in the range"),
     (["--set", "blobs=1"], "--set wants GROUP.PROPERTY=VALUE"),
     (["--caddies", "0-1,1-2"], "settings: caddies: each camera may be in one caddy"),
-    (["--caddies", "a-b"], "--caddies wants camera pairs"),
+    (["--caddies", "a-b"], "caddies must be camera pairs like 0-1,2-3, or none"),
     (["--set", "init3d.auto_min_views=5"], "Automatic Min Views (5) exceeds the take's 4 cameras"),
 ])
 def test_process_settings_errors_are_one_line(capsys, take, tmp_path, argv, message):

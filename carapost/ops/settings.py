@@ -82,7 +82,7 @@ def parse_caddies(spec: str | None) -> list[tuple[int, int]] | None:
     try:
         return [(int(a), int(b)) for a, b in (pair.split("-") for pair in spec.split(",") if pair.strip())]
     except ValueError:
-        raise ValueError(f"--caddies wants camera pairs like 0-1,2-3 or none, got {spec!r}") from None
+        raise ValueError(f"caddies must be camera pairs like 0-1,2-3, or none; got {spec!r}") from None
 
 
 def format_caddies(caddies: Sequence[tuple[int, int]]) -> str:
