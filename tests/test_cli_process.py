@@ -114,7 +114,7 @@ def test_process_applies_preset_settings_and_caddies(capsys, take, tmp_path):
     (["--set", "blobs.no_such_thing=1"], "settings: Blob Parameters: no property named"),
     (["--set", "blobs.black_threshold=2"], "settings: Blob Parameters: Black Threshold must be in the range"),
     (["--set", "blobs=1"], "--set wants GROUP.PROPERTY=VALUE"),
-    (["--caddies", "0-1,1-2"], "settings: caddies: each camera may be in one caddy"),
+    (["--caddies", "0-1,1-2"], "settings: caddies: camera(s) [1] are in two caddies"),
     (["--caddies", "a-b"], "caddies must be camera pairs like 0-1,2-3, or none"),
     (["--set", "init3d.auto_min_views=5"], "Automatic Min Views (5) exceeds the take's 4 cameras"),
 ])

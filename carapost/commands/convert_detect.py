@@ -48,10 +48,7 @@ def _detect(session: Any, args: argparse.Namespace, settings: list[tuple[str, st
     from carapost.ops.settings import apply_settings, set_property
 
     take = session.take
-    try:
-        apply_settings(session, preset=args.preset, settings=settings)     # then the flags below
-    except ValueError as exc:
-        raise ValueError(f"settings: {exc}") from None
+    apply_settings(session, preset=args.preset, settings=settings)     # then the flags below
     for name in ("black_threshold", "white_threshold", "black_min_radius", "black_max_radius",
                  "white_min_radius", "white_max_radius"):
         value = getattr(args, name)

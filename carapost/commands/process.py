@@ -38,10 +38,7 @@ def cmd_process(args: argparse.Namespace) -> dict[str, Any]:
     with session:
         for m in session.messages:
             print(f"  warning: {m}")
-        try:
-            apply_settings(session, preset=args.preset, settings=settings, caddies=caddies)
-        except ValueError as exc:
-            raise ValueError(f"settings: {exc}") from None
+        apply_settings(session, preset=args.preset, settings=settings, caddies=caddies)
         detect = args.detect or ("range" if args.track else "frame")
         opts = PipelineOptions(frame=args.frame, detect=detect, brim=args.brim, seeds=args.seeds,
                                auto_init=args.auto_init, rom=args.rom, track=args.track,

@@ -23,6 +23,7 @@ Ids are stable (never reused) so sticks, selections and undo refer to points by 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import IntEnum
 from pathlib import Path
@@ -45,6 +46,7 @@ __all__ = [
     "Keyframes",
     "Take",
     "POINT_ARRAYS",
+    "check_caddies",
 ]
 
 
@@ -248,6 +250,26 @@ POINT_ARRAYS: dict[str, tuple[tuple[int, ...], type, object]] = {
 }
 
 
+
+def check_caddies(caddies: Sequence[Sequence[int]], n_cameras: int) -> list[tuple[int, int]]:
+    """``caddies`` as a list of camera pairs, checked: each names two different cameras of
+    ``n_cameras``, and no camera is in two caddies.
+
+    Raises
+    ------
+    ValueError
+        Naming the offending caddy or cameras.
+    """
+    pairs = [(int(a), int(b)) for a, b in caddies]
+    for a, b in pairs:
+        if not (0 <= a < n_cameras and 0 <= b < n_cameras) or a == b:
+            raise ValueError(f"caddy ({a}, {b}) does not name two of the {n_cameras} cameras")
+    used = [c for pair in pairs for c in pair]
+    twice = sorted({c for c in used if used.count(c) > 1})
+    if twice:
+        raise ValueError(f"camera(s) {twice} are in two caddies: {pairs}")
+    return pairs
+
 @dataclass
 class Take:
     """A take: everything CaraPost knows about one capture.
@@ -311,9 +333,7 @@ class Take:
             tf[...] = np.broadcast_to(np.asarray(t, float), tf.shape)
         if caddies is None:
             caddies = [pair for pair in [(0, 1), (2, 3)] if max(pair) < C]
-        for a, b in caddies:
-            if not (0 <= a < C and 0 <= b < C) or a == b:
-                raise ValueError(f"caddy ({a}, {b}) does not name two of the {C} cameras")
+        caddies = check_caddies(caddies, C)
         take = cls(cameras=cameras, n_frames=n_frames, frame_rate=float(frame_rate), R=Rf, t=tf,
                    detections=[Detections.empty(n_frames) for _ in cameras], points=PointTable(),
                    caddies=list(caddies), active_range=(0, n_frames - 1), view_range=(0, n_frames - 1),

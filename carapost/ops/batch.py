@@ -166,9 +166,9 @@ def _open_session(job: TakeJob, options: BatchOptions) -> Any:
         Session.from_sources(list(job.inputs), job.calibration, name=job.name)
     try:
         apply_settings(session, preset=options.preset, settings=options.settings, caddies=options.caddies)
-    except (ValueError, KeyError) as exc:
+    except ValueError:
         session.close()
-        raise ValueError(f"settings: {exc}") from None
+        raise
     return session
 
 

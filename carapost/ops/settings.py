@@ -9,7 +9,7 @@ import numpy as np
 
 from carapost.core.camera import camera_centre
 from carapost.model.params import PRESETS, Parameters
-from carapost.model.take import Take
+from carapost.model.take import Take, check_caddies
 
 from .change import AttributeChange, Composite
 
@@ -61,15 +61,13 @@ def set_caddies(take: Take, caddies: Sequence[tuple[int, int]]) -> AttributeChan
     Raises
     ------
     ValueError
-        A camera that does not exist, a pair of one camera, or a camera in two caddies.
+        A camera that does not exist, a pair of one camera, or a camera in two caddies
+        (:func:`carapost.model.take.check_caddies`).
     """
-    pairs = [(int(a), int(b)) for a, b in caddies]
-    used = [c for pair in pairs for c in pair]
-    bad = [c for c in used if not 0 <= c < take.n_cameras]
-    if bad:
-        raise ValueError(f"caddies: camera(s) {sorted(set(bad))} do not exist (the take has {take.n_cameras})")
-    if any(a == b for a, b in pairs) or len(set(used)) != len(used):
-        raise ValueError(f"caddies: each camera may be in one caddy of two different cameras, got {pairs}")
+    try:
+        pairs = check_caddies(caddies, take.n_cameras)
+    except ValueError as exc:
+        raise ValueError(f"caddies: {exc}") from None
     return AttributeChange.capture(take, "caddies", pairs, f"Caddies: {format_caddies(pairs)}")
 
 
@@ -99,18 +97,21 @@ def apply_settings(session: Any, *, preset: str | None = None, settings: Sequenc
     Raises
     ------
     ValueError
-        An unknown preset, group or property, or a value the property refuses.
+        ``"settings: ..."``: an unknown preset, group or property, or a value the property
+        refuses (what was applied before stays applied).
     """
     take = session.take
-    if preset is not None:
-        session.apply(apply_preset(take, preset))
-    for group, name, value in settings:
-        try:
+    try:
+        if preset is not None:
+            session.apply(apply_preset(take, preset))
+        for group, name, value in settings:
             session.apply(set_property(take, group, name, value))
-        except KeyError as exc:          # unknown group or property: the message lists the known ones
-            raise ValueError(str(exc.args[0])) from None
-    if caddies is not None:
-        session.apply(set_caddies(take, caddies))
+        if caddies is not None:
+            session.apply(set_caddies(take, caddies))
+    except KeyError as exc:              # unknown group or property: the message lists the known ones
+        raise ValueError(f"settings: {exc.args[0]}") from None
+    except ValueError as exc:
+        raise ValueError(f"settings: {exc}") from None
 
 
 def _range(take: Take, start: int, end: int, what: str) -> tuple[int, int]:
